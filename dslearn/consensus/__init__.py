@@ -1,0 +1,1 @@
+"""Consensus weights and fusion strategies."""

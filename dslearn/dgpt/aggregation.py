@@ -1,0 +1,111 @@
+r"""Aggregation of local GP predictions (paper Sec. II-B) and the UCB of Theorem 1.
+
+All functions work on the last axis = experts, with arbitrary leading batch dims and a boolean
+``mask`` (False = expert left out: empty window, paper Sec. III-B). ``prior_var`` is the
+prior variance :math:`\sigma_{**}^2` of f at the test input (the SE amplitude, shared by all
+experts); it broadcasts against the batch shape.
+
+* ``poe``  : :math:`\sigma^{-2} = \sum_i \sigma_i^{-2}`, :math:`\mu = \sigma^2 \sum_i \sigma_i^{-2}\mu_i`.
+* ``gpoe`` : Eqs. 9-10 with :math:`\beta_i = \tfrac12(\log\sigma_{**}^2 - \log\sigma_i^2)` (Eq. 7).
+* ``bcm``  : :math:`\sigma^{-2} = \sum_i \sigma_i^{-2} + (1 - M)\sigma_{**}^{-2}` (Tresp 2000).
+* ``rbcm`` : Eqs. 12-13 with the Eq. 7 weights.
+
+With no expert at all the result is the GP prior (mean 0, variance :math:`\sigma_{**}^2`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ..errors import check_choice
+
+AGGREGATIONS = ("poe", "gpoe", "bcm", "rbcm")
+
+
+def entropy_weights(var: Tensor, prior_var: Tensor, mask: Tensor) -> Tensor:
+    """Eq. 7: :math:`\\beta_i = 0.5(\\log\\sigma_{**}^2 - \\log\\sigma_i^2)` (>= 0), 0 where masked.
+
+    Args:
+        var: (..., M) expert variances; prior_var: broadcastable to (..., 1); mask: (..., M) bool.
+    """
+    pv = torch.as_tensor(prior_var, dtype=var.dtype, device=var.device)
+    if pv.dim() < var.dim():
+        pv = pv.unsqueeze(-1)
+    beta = 0.5 * (torch.log(pv) - torch.log(var))
+    return torch.where(mask, beta.clamp_min(0.0), torch.zeros_like(beta))
+
+
+def aggregate(mean: Tensor, var: Tensor, mask: Tensor, prior_var, method: str,
+              normalise_beta: bool = False):
+    """Aggregate local predictive distributions into one.
+
+    Args:
+        mean, var: (..., M) local predictive means / variances (Eqs. 5-6).
+        mask: (..., M) bool, which experts take part.
+        prior_var: prior variance of f, shape broadcastable to (...).
+        method: one of :data:`AGGREGATIONS`.
+        normalise_beta: gPoE/rBCM with :math:`\\beta_i / \\sum_j \\beta_j` instead of raw Eq. 7.
+
+    Returns:
+        (mean, var, beta): aggregated mean (...), variance (...) > 0, and the weights (..., M)
+        actually used (1 for PoE/BCM).
+    """
+    check_choice("task.aggregations", method, AGGREGATIONS)
+    pv = torch.as_tensor(prior_var, dtype=var.dtype, device=var.device).expand(var.shape[:-1])
+    var = var.clamp_min(1e-12)
+    maskf = mask.to(var.dtype)
+    if method in ("poe", "bcm"):
+        beta = maskf
+    else:
+        beta = entropy_weights(var, pv, mask)
+        if normalise_beta:
+            s = beta.sum(-1, keepdim=True)
+            beta = torch.where(s > 0, beta / s.clamp_min(1e-300), beta)
+    prec_i = beta / var                         # beta_i sigma_i^{-2}
+    prec = prec_i.sum(-1)
+    if method == "bcm":
+        prec = prec + (1.0 - maskf.sum(-1)) / pv
+    elif method == "rbcm":
+        prec = prec + (1.0 - beta.sum(-1)) / pv
+    num = (prec_i * mean).sum(-1)
+    # no usable expert (or all weights 0 for gPoE) -> prior; floor at the prior precision
+    empty = prec_i.sum(-1) <= 0
+    prec = torch.where(empty, 1.0 / pv, prec)
+    if method in ("bcm", "rbcm"):
+        prec = torch.maximum(prec, 1.0 / pv)   # exact-arithmetic property, guards round-off
+    agg_var = 1.0 / prec
+    agg_mean = torch.where(empty, torch.zeros_like(num), agg_var * num)
+    return agg_mean, agg_var, beta
+
+
+def ucb_gamma(num_experts: Tensor, delta: float) -> Tensor:
+    """Equal :math:`\\gamma_i` with :math:`\\sum_i e^{-\\gamma_i/2} = \\delta`: :math:`\\gamma = 2\\log(M/\\delta)`."""
+    m = num_experts.clamp_min(1).to(torch.float64)
+    return 2.0 * torch.log(m / delta)
+
+
+def ucb_bound(var: Tensor, beta: Tensor, mask: Tensor, prior_var, delta: float) -> Tensor:
+    """Theorem 1 (Eq. 24) error bound, holding with probability >= 1 - delta.
+
+    .. math:: |f - \\mu| \\le \\frac{\\sum_i \\beta_i\\gamma_i^{1/2}\\sigma_i^{-1}}{\\sum_i \\beta_i\\sigma_i^{-2}},
+        \\quad \\gamma_i = 2\\log(M/\\delta).
+
+    Args:
+        var, beta, mask: (..., M); prior_var broadcastable to (...); delta in (0, 1).
+
+    Returns:
+        (...,) bound; where no expert has positive weight: Lemma 1 on the prior,
+        :math:`\\sqrt{2\\log(1/\\delta)}\\,\\sigma_{**}`.
+    """
+    pv = torch.as_tensor(prior_var, dtype=var.dtype, device=var.device).expand(var.shape[:-1])
+    m = mask.sum(-1)
+    g = ucb_gamma(m, delta).to(var.dtype)
+    b = torch.where(mask, beta, torch.zeros_like(beta))
+    sd = var.clamp_min(1e-12).sqrt()
+    den = (b / sd ** 2).sum(-1)
+    num = g.sqrt() * (b / sd).sum(-1)
+    prior_bound = math.sqrt(2 * math.log(1 / delta)) * pv.sqrt()
+    return torch.where(den > 0, num / den.clamp_min(1e-300), prior_bound)

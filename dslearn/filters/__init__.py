@@ -1,0 +1,1 @@
+"""Filter steps as pure functions (information form)."""

@@ -1,0 +1,103 @@
+r"""The model interfaces every filter uses.
+
+A :class:`MotionModel` describes :math:`y^{t+1} = f(y^t) + \eta^t`,
+:math:`\eta^t \sim \mathcal N(0, Q(y^t))`. Models with per-node state (learned models,
+one data set per sensor node) take inputs whose leading dimension is the node dimension
+``S``; parametric models broadcast over any leading dimensions.
+"""
+
+from __future__ import annotations
+
+import abc
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from ..types import StepContext, batch_jacobian
+
+
+class MotionModel(nn.Module, abc.ABC):
+    r"""Motion model :math:`y^{t+1} = f(y^t) + \eta`, :math:`\eta \sim \mathcal N(0, Q(y^t))`.
+
+    Implement :meth:`forward` and :meth:`noise_cov`; :meth:`jacobian` defaults to autograd.
+    Learned models also implement :meth:`add_data` (and optionally :meth:`fit`).
+    """
+
+    state_dim: int
+    #: whether :meth:`add_data` changes the model (the runner skips training otherwise)
+    learnable: bool = False
+
+    @abc.abstractmethod
+    def forward(self, x: Tensor, ctx: StepContext) -> Tensor:
+        """Predicted mean. ``(*B, Dx) -> (*B, Dx)``."""
+
+    @abc.abstractmethod
+    def noise_cov(self, x: Tensor, ctx: StepContext) -> Tensor:
+        """Process noise covariance at ``x``. ``(*B, Dx) -> (*B, Dx, Dx)``."""
+
+    def jacobian(self, x: Tensor, ctx: StepContext) -> Tensor:
+        """:math:`\\partial f / \\partial y` at ``x``. ``(*B, Dx) -> (*B, Dx, Dx)``."""
+        return batch_jacobian(lambda z: self(z, ctx), x)
+
+    def linearize(self, x: Tensor, ctx: StepContext) -> tuple[Tensor, Tensor, Tensor]:
+        """Mean, Jacobian and process covariance at ``x`` in one call (what an EKF needs).
+
+        Models override this to share work between the three. Returns
+        ``(mean (*B, Dx), F (*B, Dx, Dx), Q (*B, Dx, Dx))``.
+        """
+        return self(x, ctx), self.jacobian(x, ctx), self.noise_cov(x, ctx)
+
+    @torch.no_grad()
+    def rollout(self, x0: Tensor, steps: int, ctx: StepContext) -> Tensor:
+        """Mean trajectory from ``x0``: ``(*B, Dx) -> (*B, steps, Dx)`` (``x0`` excluded)."""
+        out = []
+        x = x0
+        for _ in range(steps):
+            x = self(x, ctx)
+            out.append(x)
+        return torch.stack(out, dim=-2)
+
+    # learned models -------------------------------------------------------------------
+    def add_data(self, inputs: Tensor, outputs: Tensor, valid: Tensor | None = None) -> None:
+        """Append input/output examples ``(S, Dx)`` (one per node). No-op for fixed models."""
+
+    def fit(self) -> "MotionModel":
+        """Fit hyperparameters to the current data (marginal likelihood). No-op by default."""
+        return self
+
+    def save(self, path: str | Path) -> None:
+        """Save parameters and data (``torch.save`` of a plain tensor dict)."""
+        torch.save(self.state_dict(), path)
+
+    def load(self, path: str | Path) -> "MotionModel":
+        """Load what :meth:`save` wrote; uses safe (weights-only) loading."""
+        self.load_state_dict(torch.load(path, weights_only=True))
+        return self
+
+
+class ObservationModel(nn.Module, abc.ABC):
+    r"""Per-target observation model :math:`z_{ij} = h(y_j) + \nu`, :math:`\nu \sim \mathcal N(0, R(y_j))`.
+
+    ``forward``: ``(*B, 4) -> (*B, Dz)``; ``noise_cov``: ``(*B, Dz, Dz)``;
+    ``jacobian``: ``(*B, Dz, 4)``. A sensor measures each target in range separately.
+    """
+
+    meas_dim: int = 2
+    learnable: bool = False
+
+    @abc.abstractmethod
+    def forward(self, y: Tensor) -> Tensor: ...
+
+    @abc.abstractmethod
+    def noise_cov(self, y: Tensor) -> Tensor: ...
+
+    def jacobian(self, y: Tensor) -> Tensor:
+        return batch_jacobian(self, y)
+
+    def linearize(self, y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(h (*B, Dz), C (*B, Dz, 4), R (*B, Dz, Dz))`` at per-target states ``y (*B, 4)``."""
+        return self(y), self.jacobian(y), self.noise_cov(y)
+
+    def add_data(self, inputs: Tensor, outputs: Tensor, valid: Tensor) -> None:
+        """Append per-target examples: inputs ``(S, A, 4)``, outputs ``(S, A, Dz)``, valid ``(S, A)``."""

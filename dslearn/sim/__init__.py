@@ -1,0 +1,1 @@
+"""Simulation: scenarios, ground truth, sensors and the communication network."""

@@ -1,0 +1,108 @@
+r"""Ground-truth episodes of interacting agents and the network's measurements (Yu et al. V-A)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from ..errors import ConfigError, check_positive
+from ..models.social_force import SocialForce
+from ..types import AGENT_DIM, StepContext, agents, joint
+from .network import SensorNetwork
+
+
+@dataclass
+class Episodes:
+    """A batch of episodes.
+
+    Attributes:
+        states: ``(B, K+1, Dx)`` true joint states at t = 0..K.
+        meas: ``(S, B, K+1, A, 2)`` measurements of every node (zeros where not visible).
+        visible: ``(S, B, K+1, A)`` bool, which node measured which target.
+    """
+
+    states: Tensor
+    meas: Tensor
+    visible: Tensor
+
+    def __len__(self) -> int:
+        return self.states.shape[0]
+
+    def select(self, idx) -> "Episodes":
+        return Episodes(self.states[idx], self.meas[:, idx], self.visible[:, idx])
+
+
+class SocialForceScenario:
+    r"""Agents driven by the social force model, starting uniformly in squares.
+
+    Args:
+        desired_velocities: ``A`` pairs :math:`v_j^*` (also the initial velocities).
+        start_corners: ``A`` lower-left corners of the start squares.
+        start_size: side of the start squares.
+        tau, alpha, beta: social force parameters (shared or per agent).
+        process_std: :math:`\sigma_\eta`, added to position and velocity each step.
+        horizon: ``T`` in seconds; dt: :math:`\Delta t` in seconds; ``K = T/\Delta t`` steps.
+    """
+
+    def __init__(
+        self,
+        desired_velocities: Sequence[Sequence[float]] = ((1.0, -1.0), (-1.0, -1.0)),
+        start_corners: Sequence[Sequence[float]] = ((1.5, 5.0), (5.0, 5.0)),
+        start_size: float = 1.5,
+        tau: float | Sequence[float] = 0.25,
+        alpha: float | Sequence[float] = 6.0,
+        beta: float | Sequence[float] = 5.0,
+        process_std: float = 1e-3,
+        horizon: float = 3.0,
+        dt: float = 0.25,
+        area: Sequence[float] = (0.0, 8.0, 0.0, 8.0),
+    ):
+        check_positive("scenario.dt", dt)
+        check_positive("scenario.horizon", horizon)
+        check_positive("scenario.start_size", start_size, strict=False)
+        check_positive("scenario.process_std", process_std, strict=False)
+        self.sfm = SocialForce(desired_velocities, tau, alpha, beta, noise_std=max(process_std, 1e-12))
+        self.num_agents = self.sfm.num_agents
+        corners = torch.as_tensor(start_corners, dtype=torch.float64)
+        if corners.shape != (self.num_agents, 2):
+            raise ConfigError(
+                f"scenario.start_corners must hold {self.num_agents} [x, y] pairs (one per agent), "
+                f"got shape {tuple(corners.shape)}"
+            )
+        steps = horizon / dt
+        if abs(steps - round(steps)) > 1e-9:
+            raise ConfigError(f"scenario.horizon={horizon} must be a multiple of scenario.dt={dt}")
+        self.corners = corners
+        self.start_size = float(start_size)
+        self.process_std = float(process_std)
+        self.dt = float(dt)
+        self.steps = int(round(steps))
+        self.area = tuple(float(a) for a in area)
+
+    @property
+    def state_dim(self) -> int:
+        return AGENT_DIM * self.num_agents
+
+    def ctx(self) -> StepContext:
+        return StepContext(dt=self.dt)
+
+    def sample(self, num: int, network: SensorNetwork, generator: torch.Generator) -> Episodes:
+        """Simulate ``num`` episodes (vectorised over episodes) and the network's measurements."""
+        a, k = self.num_agents, self.steps
+        pos0 = self.corners + self.start_size * torch.rand(num, a, 2, generator=generator, dtype=torch.float64)
+        vel0 = self.sfm.desired.expand(num, a, 2)
+        x = joint(torch.cat([pos0, vel0], -1))
+        traj = [x]
+        ctx = self.ctx()
+        for _ in range(k):
+            x = self.sfm(x, ctx) + self.process_std * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+            traj.append(x)
+        states = torch.stack(traj, 1)  # (B, K+1, Dx)
+        pos = agents(states)[..., :2]  # (B, K+1, A, 2)
+        vis = network.visible(pos)  # (S, B, K+1, A)
+        noise = network.meas_std * torch.randn((network.num_nodes, *pos.shape), generator=generator, dtype=pos.dtype)
+        meas = (pos.unsqueeze(0) + noise) * vis.unsqueeze(-1)
+        return Episodes(states, meas, vis)

@@ -1,0 +1,104 @@
+r"""Shared types and state layout.
+
+Joint state of ``A`` agents: ``y = [y_1, ..., y_A]`` with ``y_j = (p_x, p_y, v_x, v_y)``,
+so ``Dx = 4 A``. Shapes are batch first, event last: state ``(*B, Dx)``, covariance
+``(*B, Dx, Dx)``; beliefs across a network put nodes first, ``(S, *B, Dx)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+from torch import Tensor
+
+AGENT_DIM = 4
+POS = slice(0, 2)
+VEL = slice(2, 4)
+
+
+def agents(x: Tensor) -> Tensor:
+    """Split a joint state ``(*B, 4A)`` into ``(*B, A, 4)`` (a view)."""
+    return x.unflatten(-1, (-1, AGENT_DIM))
+
+
+def joint(x: Tensor) -> Tensor:
+    """Inverse of :func:`agents`: ``(*B, A, 4) -> (*B, 4A)``."""
+    return x.flatten(-2)
+
+
+def positions(x: Tensor) -> Tensor:
+    """Positions of every agent, ``(*B, 4A) -> (*B, A, 2)``."""
+    return agents(x)[..., POS]
+
+
+@dataclass
+class StepContext:
+    """What a model may need besides the state.
+
+    Attributes:
+        dt: time step in seconds.
+    """
+
+    dt: float = 0.25
+
+
+def symmetrize(m: Tensor) -> Tensor:
+    """``(M + M^T) / 2`` over the last two dims."""
+    return 0.5 * (m + m.transpose(-1, -2))
+
+
+def batch_jacobian(f: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool = False) -> Tensor:
+    """Jacobian of a row-wise ``f: (*B, Din) -> (*B, Dout)``. Returns ``(*B, Dout, Din)``."""
+    with torch.enable_grad():
+        x = x.detach().requires_grad_(True)
+        y = f(x)
+        rows = [
+            torch.autograd.grad(y[..., i].sum(), x, retain_graph=True, create_graph=create_graph)[0]
+            for i in range(y.shape[-1])
+        ]
+    return torch.stack(rows, dim=-2)
+
+
+class JitterLog:
+    """Counts the times a near-singular matrix needed jitter or a fallback."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.max_jitter = 0.0
+
+    def record(self, jitter: float) -> None:
+        self.count += 1
+        self.max_jitter = max(self.max_jitter, float(jitter))
+
+
+JITTER = JitterLog()
+
+
+def safe_cholesky(m: Tensor, max_tries: int = 6, log: Optional[JitterLog] = None) -> Tensor:
+    """Cholesky factor of SPD ``m`` (*B, D, D); adds growing diagonal jitter if it fails.
+
+    Jitter starts at 1e-10 times the mean diagonal and grows tenfold; each use is recorded
+    in ``log`` (default: the module-wide :data:`JITTER`), so runs can report it.
+    """
+    m = symmetrize(m)
+    chol, info = torch.linalg.cholesky_ex(m)
+    if not bool((info > 0).any()):
+        return chol
+    log = log or JITTER
+    scale = m.diagonal(dim1=-2, dim2=-1).abs().mean().clamp_min(1e-12)
+    eye = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device)
+    jitter = 1e-10 * float(scale)
+    for _ in range(max_tries + 6):
+        chol, info = torch.linalg.cholesky_ex(m + jitter * eye)
+        if not bool((info > 0).any()):
+            log.record(jitter)
+            return chol
+        jitter *= 10.0
+    raise torch.linalg.LinAlgError(f"matrix not positive definite even with jitter {jitter:g}")
+
+
+def spd_inverse(m: Tensor, log: Optional[JitterLog] = None) -> Tensor:
+    """Inverse of an SPD matrix through its Cholesky factor, symmetrised."""
+    return symmetrize(torch.cholesky_inverse(safe_cholesky(m, log=log)))

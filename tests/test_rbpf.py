@@ -1,0 +1,340 @@
+"""Tests for dslearn.rbpf and the braga_tbn study (RBPF + online EM + consensus on sufficient statistics)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from dslearn.errors import ConfigError
+from dslearn.rbpf import (average_consensus, check_eq22, combination_matrices, cv_model, init_state, m_step,
+                          make_params, max_degree_paper, online_estep, posterior_mean, rbpf_step,
+                          throughput_bytes_per_step, weight_matrix)
+from dslearn.rbpf.cooperation import network_adjacency
+from dslearn.rbpf.jmnls import obs_loglik, simulate_modes, stats_dim
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """float64 throughout; these tests run thousands of tiny tensor ops: one intra-op thread avoids OpenMP spin-wait overhead
+    (several times faster on a busy 2-core machine). Restored afterwards."""
+    n, dt = torch.get_num_threads(), torch.get_default_dtype()
+    torch.set_num_threads(1)
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_num_threads(n)
+    torch.set_default_dtype(dt)
+
+
+FINGER_FOUR = [[0, 1], [0, 2], [2, 3]]
+EQ26 = torch.tensor([[0.5, 0.25, 0.25, 0.0], [0.25, 0.75, 0.0, 0.0], [0.25, 0.0, 0.5, 0.25], [0.0, 0.0, 0.25, 0.75]], dtype=torch.float64)
+
+
+def _flat(x):
+    """h(x) = 0: the measurement carries only the jump-Markov noise (known-state / pure HMM case)."""
+    return torch.zeros(x.shape[:-1], dtype=x.dtype)
+
+
+def _hmm_brute_force(y, a0, theta):
+    """Enumerate all mode paths r_0..r_T: filtered alpha_T, log p(y_1:T), smoothed mean of (1/T) sum s_t."""
+    k = a0.numel()
+    T = y.numel()
+    logp, paths = [], []
+    for r in itertools.product(range(k), repeat=T + 1):
+        lp = math.log(a0[r[0]])
+        for t in range(1, T + 1):
+            lp += math.log(theta.pi[r[t - 1], r[t]]) + obs_loglik(y[t - 1:t], theta.mu, theta.sigma)[0, r[t]].item()
+        logp.append(lp)
+        paths.append(r)
+    logp = torch.tensor(logp)
+    lz = torch.logsumexp(logp, 0)
+    w = torch.exp(logp - lz)
+    alpha = torch.zeros(k)
+    s = torch.zeros(stats_dim(k))
+    for wi, r in zip(w, paths):
+        alpha[r[-1]] += wi
+        v = torch.zeros(stats_dim(k))
+        for t in range(1, T + 1):
+            v[r[t - 1] * k + r[t]] += 1
+            v[k * k + r[t]] += 1
+            v[k * k + k + r[t]] += y[t - 1]
+            v[k * k + 2 * k + r[t]] += y[t - 1] ** 2
+        s += wi * v / T
+    return alpha, lz, s
+
+
+def _hmm_setup():
+    theta = make_params([0.0, 3.0], [1.0, 2.0], [[0.8, 0.2], [0.3, 0.7]])
+    y = torch.tensor([0.3, 2.8, 3.5, -0.4, 1.2, 4.1])
+    a0 = torch.tensor([0.6, 0.4])
+    dyn = cv_model(0.1, 1.0)
+    return theta, y, a0, dyn
+
+
+def test_hmm_filter_and_estep_match_brute_force():
+    """Conditional HMM filter (Eq. 11-13) and the online E-step with eta_t = 1/t (Eq. 18) vs enumeration."""
+    theta, y, a0, dyn = _hmm_setup()
+    g = torch.Generator().manual_seed(0)
+    st = init_state(torch.zeros(1, 4), 3, a0[None])
+    th = theta.expand(1)
+    total = 0.0
+    for t in range(1, y.numel() + 1):
+        st, stats, info = rbpf_step(st, y[t - 1:t], _flat, th, dyn, g, eta=1.0 / t, ess_threshold=0.5)
+        total += info["loglik"].item()
+    alpha_bf, lz_bf, s_bf = _hmm_brute_force(y, a0, theta)
+    torch.testing.assert_close(st.alpha[0], alpha_bf.expand(3, 2), atol=1e-12, rtol=0)
+    assert abs(total - lz_bf.item()) < 1e-10
+    torch.testing.assert_close(stats[0], s_bf, atol=1e-10, rtol=0)
+
+
+def test_online_estep_equals_explicit_double_sum():
+    """Batched Eq. (16)-(18) equals a literal loop over (i, l, j, k) with f from the full Gaussian density."""
+    g = torch.Generator().manual_seed(1)
+    n, k = 4, 2
+    d = stats_dim(k)
+    dyn = cv_model(0.5, 2.0, (0.7, 0.3))
+    x_prev = torch.randn(n, 4, generator=g) * 2
+    x_new = dyn.sample(x_prev, g) + 0.5 * torch.randn(n, 4, generator=g)
+    w = torch.rand(n, generator=g)
+    logw = torch.log(w / w.sum())
+    alpha = torch.softmax(torch.randn(n, k, generator=g), -1)
+    T_prev = torch.randn(n, k, d, generator=g)
+    e = torch.randn(n, generator=g)
+    pi = torch.tensor([[0.7, 0.3], [0.45, 0.55]])
+    eta = 0.37
+    got = online_estep(x_prev, logw, alpha, T_prev, x_new, e, pi, eta, dyn)
+    cov = dyn.kernel_chol @ dyn.kernel_chol.T
+    f = torch.distributions.MultivariateNormal(torch.zeros(4), covariance_matrix=cov)
+    want = torch.zeros(n, k, d)
+    for i in range(n):
+        for l in range(k):
+            wt = torch.zeros(n, k)
+            for j in range(n):
+                for kk in range(k):
+                    wt[j, kk] = f.log_prob(x_new[i] - dyn.F @ x_prev[j]).exp() * pi[kk, l] * alpha[j, kk] * logw[j].exp()
+            wt = wt / wt.sum()
+            for j in range(n):
+                for kk in range(k):
+                    s = torch.zeros(d)
+                    s[kk * k + l] = 1
+                    s[k * k + l] = 1
+                    s[k * k + k + l] = e[i]
+                    s[k * k + 2 * k + l] = e[i] ** 2
+                    want[i, l] += wt[j, kk] * ((1 - eta) * T_prev[j, kk] + eta * s)
+    torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-9)
+
+
+def test_online_em_recovers_noise_parameters():
+    """Known state (h = 0): online EM (eta_t = t^-0.7, burn-in 50) recovers mu, sigma and the TPM."""
+    truth = make_params([0.0, 20.0], [1.0, 4.0], [0.85, 0.6])
+    g = torch.Generator().manual_seed(3)
+    b, T = 8, 2000
+    r = simulate_modes(truth.pi, (b,), T, g)
+    y = truth.mu[r] + truth.sigma[r] * torch.randn(b, T + 1, generator=g)
+    dyn = cv_model(0.05, 1.0)
+    theta = make_params([-5.0, 25.0], [5.0, 5.0], [0.5, 0.5]).expand(b)
+    st = init_state(torch.zeros(b, 4), 2, torch.nn.functional.one_hot(r[:, 0], 2).double())
+    for t in range(1, T + 1):
+        st, stats, _ = rbpf_step(st, y[:, t], _flat, theta, dyn, g, eta=t ** -0.7)
+        if t > 50:
+            theta = m_step(stats, theta)
+    # eta_t = t^-0.7 keeps an effective window of ~t^0.7 = 200 samples: ~150 in mode 1, ~55 in mode 2, so the
+    # per-chain standard errors are ~(0.08, 0.55) for mu and ~(0.06, 0.4) for sigma; tolerances ~3 SE on the
+    # mean over the 8 independent chains, ~4 SE per chain.
+    torch.testing.assert_close(theta.mu.mean(0), truth.mu, atol=0.6, rtol=0)
+    torch.testing.assert_close(theta.sigma.mean(0), truth.sigma, atol=0.45, rtol=0)
+    torch.testing.assert_close(theta.pi.diagonal(dim1=-2, dim2=-1).mean(0), truth.pi.diagonal(), atol=0.04, rtol=0)
+    assert ((theta.mu - truth.mu).abs() < torch.tensor([0.35, 2.2])).all()
+    assert ((theta.sigma - truth.sigma).abs() < torch.tensor([0.3, 1.6])).all()
+
+
+def _kalman(y, x0, dyn, hvec, r):
+    m, P = x0.clone(), torch.zeros(4, 4)
+    qd = dyn.G @ dyn.Q @ dyn.G.T
+    out = []
+    for t in range(y.shape[-1]):
+        m = dyn.F @ m
+        P = dyn.F @ P @ dyn.F.T + qd
+        s = hvec @ P @ hvec + r
+        kg = P @ hvec / s
+        m = m + kg * (y[t] - hvec @ m)
+        P = P - torch.outer(kg, hvec @ P)
+        P = 0.5 * (P + P.T)
+        out.append(m)
+    return torch.stack(out)
+
+
+def test_rbpf_approaches_kalman_filter_single_mode():
+    """Linear-Gaussian, one mode: the particle mean converges to the Kalman mean as N grows."""
+    g = torch.Generator().manual_seed(5)
+    dyn = cv_model(0.2, 4.0)
+    hvec = torch.tensor([1.0, 0.5, 0.0, 0.0])
+    theta = make_params([0.0], [1.0], [[1.0]])
+    x0 = torch.tensor([0.0, 0.0, 3.0, -1.0])
+    steps, b = 15, 8
+    xs = [x0.expand(b, 4)]
+    for _ in range(steps):
+        xs.append(dyn.sample(xs[-1], g))
+    xs = torch.stack(xs[1:], 1)  # (b, T, 4)
+    y = xs @ hvec + torch.randn(b, steps, generator=g)
+    kf = torch.stack([_kalman(y[i], x0, dyn, hvec, 1.0) for i in range(b)])  # (b, T, 4)
+    errs = {}
+    for n in (30, 3000):
+        st = init_state(x0.expand(b, 4), n, torch.ones(b, 1))
+        th = theta.expand(b)
+        est = []
+        for t in range(steps):
+            st, _, _ = rbpf_step(st, y[:, t], lambda x: x @ hvec, th, dyn, g, eta=1.0, estep=False)
+            est.append(posterior_mean(st))
+        errs[n] = (torch.stack(est, 1) - kf)[..., :2].pow(2).mean().sqrt().item()
+    assert errs[3000] < 0.35 * errs[30], errs
+    assert errs[3000] < 0.1, errs
+
+
+def test_consensus_converges_to_centralised_average():
+    adj = network_adjacency(4, FINGER_FOUR)
+    a = weight_matrix(adj, "max_degree")
+    g = torch.Generator().manual_seed(2)
+    zeta = torch.randn(3, 4, 10, generator=g)  # (batch, nodes, statistics)
+    avg = zeta.mean(-2, keepdim=True).expand_as(zeta)
+    torch.testing.assert_close(average_consensus(zeta, a, 400), avg, atol=1e-12, rtol=0)
+    errs = [(average_consensus(zeta, a, q) - avg).abs().max().item() for q in (1, 5, 10)]
+    assert errs[0] > errs[1] > errs[2] > 0
+    m = combination_matrices(["noncooperative", "centralised", "consensus_1", "consensus_10"], a)
+    torch.testing.assert_close(m[0], torch.eye(4))
+    torch.testing.assert_close(m[1], torch.full((4, 4), 0.25))
+    torch.testing.assert_close(m[2], a)
+    torch.testing.assert_close(m[3], torch.linalg.matrix_power(a, 10))
+    # the average is preserved by every round (column-stochastic A, Eq. 22a)
+    torch.testing.assert_close(average_consensus(zeta, a, 3).mean(-2), zeta.mean(-2))
+
+
+def test_weight_matrices_against_eq22():
+    adj = network_adjacency(4, FINGER_FOUR)
+    torch.testing.assert_close(max_degree_paper(adj), EQ26)  # Eq. (26) reproduced
+    for rule in ("max_degree", "max_degree_core", "metropolis"):
+        check_eq22(weight_matrix(adj, rule), adj)
+    check_eq22(weight_matrix(adj, "matrix", EQ26.tolist()), adj)
+    deg = adj.sum(-1).double()
+    row_only = (adj.double() + torch.eye(4)) / (deg + 1)[:, None]  # row-stochastic, not column-stochastic
+    with pytest.raises(ConfigError, match="22a"):
+        check_eq22(row_only)
+    with pytest.raises(ConfigError, match="22b"):
+        check_eq22(row_only.T)
+    with pytest.raises(ConfigError, match="22c"):
+        check_eq22(torch.eye(4))  # doubly stochastic but never mixes
+    bad = EQ26.clone()
+    bad[1, 3] = bad[3, 1] = 0.05
+    bad[1, 1] -= 0.05
+    bad[3, 3] -= 0.05
+    with pytest.raises(ConfigError, match="not linked"):
+        check_eq22(bad, adj)
+    with pytest.raises(ConfigError, match="weights"):
+        weight_matrix(adj, "uniform-ish")
+
+
+def test_throughput_hand_counted():
+    adj = network_adjacency(4, FINGER_FOUR)
+    # centralised: stats uplink 1+1+2 hops x 10 floats, params downlink 3 links x 6 floats; 4 B per float
+    assert throughput_bytes_per_step("centralised", adj, 10, 6) == (4 * 10 + 3 * 6) * 4 == 232
+    # consensus: 6 directed links x 10 floats per round
+    assert throughput_bytes_per_step("consensus_1", adj, 10, 6) == 240
+    assert throughput_bytes_per_step("consensus_5", adj, 10, 6) == 1200
+    assert throughput_bytes_per_step("noncooperative", adj, 10, 6) == 0
+    # paper Table II in kB/s (1 kB = 1024 B, 20 Hz): 4.5, 4.7, 23.5, 46.9
+    kbps = [throughput_bytes_per_step(s, adj, 10, 6) * 20 / 1024 for s in ("centralised", "consensus_1",
+                                                                             "consensus_5", "consensus_10")]
+    assert [round(v, 1) for v in kbps] == [4.5, 4.7, 23.4, 46.9]
+    path = network_adjacency(3, [[0, 1], [1, 2]])  # fusion centre at an end: hops 1 + 2
+    assert throughput_bytes_per_step("centralised", path, 10, 6, fusion_centre=0) == (3 * 10 + 2 * 6) * 4
+    with pytest.raises(ConfigError, match="consensus_<q>"):
+        throughput_bytes_per_step("consensus_0", adj, 10, 6)
+
+
+def test_bad_parameters_raise():
+    with pytest.raises(ConfigError, match="sum to 1"):
+        make_params([0, 1], [1, 1], [[0.9, 0.2], [0.5, 0.5]])
+    with pytest.raises(ConfigError, match="sigma must be > 0"):
+        make_params([0, 1], [1, -2], [0.8, 0.6])
+    with pytest.raises(ConfigError, match="K mismatch"):
+        make_params([0, 1, 2], [1, 1], [0.8, 0.6])
+    with pytest.raises(ConfigError, match="K mismatch"):
+        make_params([0, 1], [1, 1], [[1.0]])
+
+
+def test_weight_degeneracy_log_domain_no_nan():
+    """A wild measurement underflows every linear-domain weight; log-domain weights stay valid, no NaN."""
+    theta, _, a0, dyn = _hmm_setup()
+    g = torch.Generator().manual_seed(0)
+    st = init_state(torch.zeros(2, 4), 5, a0.expand(2, 2))
+    th = theta.expand(2)
+    x_rand = torch.randn(2, 5, 4, generator=g) * 3
+    st.x = x_rand
+    y = torch.tensor([1e6, float("nan")])
+    st2, stats, info = rbpf_step(st, y, lambda x: x[..., 0], th, dyn, g, eta=0.5)
+    lin = torch.exp(obs_loglik(y[:1, None] - x_rand[:1, :, 0], th.mu[:1], th.sigma[:1])).sum(-1)
+    assert (lin == 0).all()  # a linear-domain filter would divide 0/0 here
+    for t in (st2.logw, st2.alpha, st2.T, stats, posterior_mean(st2)):
+        assert not torch.isnan(t).any()
+    torch.testing.assert_close(st2.logw.exp().sum(-1), torch.ones(2))
+    assert info["degenerate"].tolist() == [False, True]
+    new = m_step(stats, th)
+    assert torch.isfinite(new.mu).all() and torch.isfinite(new.sigma).all() and torch.isfinite(new.pi).all()
+
+
+def _tiny_cfg(**over):
+    task = OmegaConf.load("conf/task/braga_tbn.yaml")
+    cfg = OmegaConf.create({"seed": 3, "device": "cpu", "dtype": "float64", "progress": False, "task": task})
+    small = {"task.mc_runs": 2, "task.mc_batch": 2, "task.steps": 50, "task.num_particles": 30,
+             "task.em.burn_in": 20, "task.steady_state_s": 1.0, "task.terrain.size_m": 12000.0,
+             "task.terrain.resolution_m": 50.0, "task.record_every": 20, "task.zoom_s": 0.5}
+    small.update(over)
+    return OmegaConf.merge(cfg, OmegaConf.from_dotlist([f"{k}={v}" for k, v in small.items()]))
+
+
+def test_end_to_end_tiny_run(tmp_path):
+    from dslearn.studies import braga_tbn
+
+    df = braga_tbn.run(_tiny_cfg())
+    for col in ("episode", "metric", "value", "model", "consensus", "node", "strategy", "time_s"):
+        assert col in df.columns
+    strategies = ["noncooperative", "centralised", "consensus_1", "consensus_5", "consensus_10"]
+    run_level = df[(df.time_s == -1) & (df.strategy != "all")]
+    assert set(run_level.strategy) == set(strategies)
+    for m in ("pos_rms", "mu_rms", "sigma_rms", "pi_rms", "throughput_kBps"):
+        v = run_level[run_level.metric == m]
+        assert len(v) == 2 * len(strategies) and v.value.notna().all() and (v.value >= 0).all()
+    thr = run_level[run_level.metric == "throughput_kBps"].groupby("strategy").value.first()
+    assert thr["noncooperative"] == 0 and abs(thr["consensus_10"] - 2400 * 20 / 1024) < 1e-9
+    assert abs(thr["centralised"] - 232 * 20 / 1024) < 1e-9
+    assert run_level[run_level.metric == "pos_rms"].value.max() < 200.0  # tracks (map spacing 50 m)
+    series = df[df.time_s >= 0]
+    assert {"pos_se_t", "mu_1", "sigma_2", "pi_11"} <= set(series.metric)
+    # burn-in: parameters untouched before step 20 (t = 1 s)
+    early = series[(series.metric == "mu_1") & (series.time_s < 1.0)]
+    assert (early.value == -5.0).all()
+    text = braga_tbn.report(df, None, tmp_path)
+    assert "centralised" in text and (tmp_path / "braga_tbn_table2.csv").exists()
+    assert (tmp_path / "braga_tbn_fig4_parameters.png").exists()
+
+
+def test_run_reproducible_and_bad_config():
+    from dslearn.studies import braga_tbn
+
+    cfg = _tiny_cfg(**{"task.mc_runs": 1, "task.mc_batch": 1, "task.steps": 15, "task.num_particles": 10,
+                       "task.em.burn_in": 5, "task.strategies": "[centralised]",
+                       "task.steady_state_s": 0.5})
+    a, b = braga_tbn.run(cfg), braga_tbn.run(cfg)
+    keep = a.metric != "wall_time_s"
+    assert a[keep].value.tolist() == b[keep].value.tolist()
+    for over, msg in (({"task.modes.pi_true": "[[0.9,0.2],[0.4,0.6]]"}, "sum to 1"),
+                      ({"task.modes.sigma_init": "[5.0,-1.0]"}, "sigma must be > 0"),
+                      ({"task.modes.mu_init": "[-5.0,25.0,3.0]"}, "K mismatch"),
+                      ({"task.strategies": "[consensus_x]"}, "consensus_<q>"),
+                      ({"task.consensus.weights": "matrix", "task.consensus.matrix": "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"}, "22c"),
+                      ({"task.num_particles": 0}, "num_particles"),
+                      ({"task.ess_threshold": 1.5}, "ess_threshold")):
+        with pytest.raises(ConfigError, match=msg):
+            braga_tbn.run(_tiny_cfg(**over))

@@ -1,0 +1,131 @@
+"""End-to-end runs of the Yu study, config errors, runner and report."""
+
+import itertools
+import json
+
+import pandas as pd
+import pytest
+
+from dslearn.errors import ConfigError
+from dslearn.report import summarize
+from dslearn.run import execute
+from dslearn.studies.yu import YuStudy
+
+TINY = ("data.train_episodes=2", "data.test_episodes=2")
+
+
+@pytest.mark.parametrize(
+    "model,consensus",
+    list(itertools.product(["lin", "sfm", "gp", "gp_increment"], ["individual", "ce", "cm", "ci", "hybrid", "centralized"])),
+)
+def test_every_model_and_fusion_runs(make_cfg, model, consensus):
+    cfg = make_cfg(f"model={model}", f"consensus={consensus}", *TINY)
+    df = YuStudy.from_config(cfg).run()
+    assert set(df["metric"]) == {"track_err", "track_rmse", "nees", "pred_err"}
+    assert df["value"].notna().all()
+    assert len(df) == 4 * 10 * 2  # metrics x nodes x test episodes
+    assert (df["model"] == model).all() and (df["consensus"] == consensus).all()
+
+
+def test_learned_observation_model_runs(make_cfg):
+    cfg = make_cfg("model=gp_increment", "observation=gp", *TINY)
+    df = YuStudy.from_config(cfg).run()
+    assert df["value"].notna().all()
+
+
+def test_consensus_beats_individual_and_sfm_predicts_best(make_cfg):
+    res = {}
+    for model, fusion in itertools.product(["lin", "sfm"], ["individual", "hybrid"]):
+        cfg = make_cfg(f"model={model}", f"consensus={fusion}", "data.train_episodes=0", "data.test_episodes=10")
+        df = YuStudy.from_config(cfg).run()
+        sens = df[(df["node_kind"] == "sensor")]
+        res[model, fusion] = sens.groupby("metric")["value"].mean()
+    for model in ("lin", "sfm"):
+        assert res[model, "hybrid"]["track_err"] < res[model, "individual"]["track_err"]
+    assert res["sfm", "hybrid"]["pred_err"] < 0.01 < res["lin", "hybrid"]["pred_err"]
+
+
+def test_runs_are_reproducible(make_cfg):
+    cfg = make_cfg("model=gp_increment", *TINY)
+    a, b = YuStudy.from_config(cfg).run(), YuStudy.from_config(cfg).run()
+    pd.testing.assert_frame_equal(a, b)
+
+
+@pytest.mark.parametrize(
+    "override,field",
+    [
+        ("model.kind=mlp", "model.kind"),
+        ("consensus.name=gossip", "consensus.name"),
+        ("model.noise_std=-0.1", "model.noise_std"),
+        ("network.sensing_range=0", "network.sensing_range"),
+        ("network.meas_std=-1", "network.meas_std"),
+        ("consensus.iterations=-1", "consensus.iterations"),
+        ("consensus.omega=half", "consensus.omega"),
+        ("network.comm_radius=0.5", "disconnected"),
+        ("data.eval_at=[5]", "data.eval_at"),
+        ("dtype=float16", "dtype"),
+        ("scenario.dt=0.3", "scenario.horizon"),
+    ],
+)
+def test_bad_config_is_a_clear_error(make_cfg, override, field):
+    cfg = make_cfg(override, *TINY, "network.positions=null")
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+        YuStudy.from_config(cfg)
+
+
+def test_unknown_model_group_is_rejected_by_hydra(make_cfg):
+    from hydra.errors import MissingConfigException
+
+    with pytest.raises(MissingConfigException):
+        make_cfg("model=mlp")
+
+
+def test_too_few_training_episodes(make_cfg):
+    cfg = make_cfg("data.train_episodes=3", "+data.min_train_episodes=10", "data.test_episodes=1")
+    with pytest.raises(ConfigError, match="too few"):
+        YuStudy.from_config(cfg)
+
+
+def test_runner_writes_results_and_report(make_cfg, tmp_path):
+    for fusion in ("individual", "hybrid"):
+        cfg = make_cfg("model=lin", f"consensus={fusion}", *TINY, "study=unit")
+        execute(cfg, tmp_path / fusion)
+    for fusion in ("individual", "hybrid"):
+        d = tmp_path / fusion
+        assert (d / "results.csv").exists() and (d / "config.yaml").exists()
+        meta = json.loads((d / "meta.json").read_text())
+        assert meta["seed"] == 0 and "torch" in meta["versions"]
+    from dslearn.report import report
+
+    text = report(tmp_path)
+    summary = pd.read_csv(tmp_path / "summary.csv")
+    for col in ("study", "consensus", "node", "model", "metric", "mean", "std", "n"):
+        assert col in summary.columns
+    avg = summary[(summary["node"] == "avg") & (summary["metric"] == "track_err")]
+    assert len(avg) == 2 and (avg["n"] == 2).all()
+    assert "Table I" in text and (tmp_path / "yu_table1.md").exists()
+
+
+def test_interrupted_run_leaves_no_results(make_cfg, tmp_path, monkeypatch):
+    cfg = make_cfg("model=lin", *TINY)
+
+    def boom(self, progress=False):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(YuStudy, "run", boom)
+    with pytest.raises(KeyboardInterrupt):
+        execute(cfg, tmp_path)
+    assert not (tmp_path / "results.csv").exists()
+
+
+def test_summary_average_row():
+    df = pd.DataFrame(
+        {
+            "study": "s", "model": "m", "consensus": "c", "metric": "track_err",
+            "node": ["sensor1", "sensor2", "comm1"] * 2, "node_kind": ["sensor", "sensor", "comm"] * 2,
+            "episode": [0, 0, 0, 1, 1, 1], "value": [1.0, 3.0, 100.0, 2.0, 4.0, 100.0],
+        }
+    )
+    s = summarize(df).set_index("node")
+    assert s.loc["avg", "mean"] == pytest.approx(2.5)  # mean of per-episode sensor means 2 and 3
+    assert s.loc["avg", "n"] == 2

@@ -1,0 +1,62 @@
+import pytest
+import torch
+
+from dslearn.consensus.weights import consensus_weights, max_degree, metropolis, uniform, validate_weights
+from dslearn.errors import ConfigError
+from dslearn.sim.network import adjacency_from_edges, is_connected, make_network
+
+
+def ring(n):
+    return adjacency_from_edges(n, [[i, (i + 1) % n] for i in range(n)] + [[0, 2]])
+
+
+@pytest.mark.parametrize("fn", [metropolis, max_degree])
+def test_doubly_stochastic(fn):
+    w = fn(ring(7))
+    assert torch.allclose(w.sum(0), torch.ones(7, dtype=w.dtype), atol=1e-12)
+    assert torch.allclose(w.sum(1), torch.ones(7, dtype=w.dtype), atol=1e-12)
+    assert (w >= 0).all()
+    assert torch.allclose(w, w.T)
+
+
+def test_uniform_row_stochastic_not_doubly():
+    adj = ring(7)
+    w = uniform(adj)
+    assert torch.allclose(w.sum(1), torch.ones(7, dtype=w.dtype), atol=1e-12)
+    deg = adj.sum(1)
+    assert torch.allclose(w[0, 0], torch.tensor(1.0 / (deg[0] + 1), dtype=w.dtype))
+    assert not torch.allclose(w.sum(0), torch.ones(7, dtype=w.dtype))
+    with pytest.raises(ConfigError, match="doubly"):
+        validate_weights(w, adj, doubly=True)
+
+
+def test_weights_only_on_edges():
+    adj = ring(6)
+    for m in ("uniform", "metropolis", "max_degree"):
+        w = consensus_weights(adj, m)
+        off = ~(adj | torch.eye(6, dtype=torch.bool))
+        assert (w[off] == 0).all()
+    with pytest.raises(ConfigError, match="consensus.weights"):
+        consensus_weights(adj, "bogus")
+
+
+def test_disconnected_network_is_an_error():
+    with pytest.raises(ConfigError, match="disconnected"):
+        make_network(num_sensors=2, num_comm=1, positions=[[0, 0], [1, 0], [9, 9]], comm_radius=2.0)
+    assert not is_connected(adjacency_from_edges(4, [[0, 1], [2, 3]]))
+
+
+def test_random_network_connected_and_reproducible():
+    a = make_network(seed=3)
+    b = make_network(seed=3)
+    assert torch.equal(a.positions, b.positions)
+    assert is_connected(a.adjacency)
+    assert a.num_nodes == 10 and int(a.is_sensor.sum()) == 4
+
+
+def test_visibility_only_sensors_in_range():
+    net = make_network(num_sensors=1, num_comm=1, positions=[[0, 0], [1, 0]], comm_radius=2.0, sensing_range=1.0)
+    vis = net.visible(torch.tensor([[[0.5, 0.0], [3.0, 0.0]]], dtype=torch.float64))
+    assert vis.shape == (2, 1, 2)
+    assert vis[0, 0].tolist() == [True, False]
+    assert not vis[1].any()  # communication-only node
