@@ -64,7 +64,7 @@ def test_runs_are_reproducible(make_cfg):
         ("network.comm_radius=0.5", "disconnected"),
         ("data.eval_at=[5]", "data.eval_at"),
         ("dtype=float16", "dtype"),
-        ("scenario.dt=0.3", "scenario.horizon"),
+        ("scenario.dt=0.35", "scenario.horizon"),
     ],
 )
 def test_bad_config_is_a_clear_error(make_cfg, override, field):
@@ -81,7 +81,7 @@ def test_unknown_model_group_is_rejected_by_hydra(make_cfg):
 
 
 def test_too_few_training_episodes(make_cfg):
-    cfg = make_cfg("data.train_episodes=3", "+data.min_train_episodes=10", "data.test_episodes=1")
+    cfg = make_cfg("data.train_episodes=3", "data.min_train_episodes=10", "data.test_episodes=1")
     with pytest.raises(ConfigError, match="too few"):
         YuStudy.from_config(cfg)
 
@@ -129,3 +129,26 @@ def test_summary_average_row():
     s = summarize(df).set_index("node")
     assert s.loc["avg", "mean"] == pytest.approx(2.5)  # mean of per-episode sensor means 2 and 3
     assert s.loc["avg", "n"] == 2
+
+
+def test_learning_gate_skips_uninformed_pairs(make_cfg):
+    """With the gate, a node whose estimate is the vague prior appends nothing (invalid points)."""
+    from dslearn.tracker import initial_belief, track
+
+    cfg = make_cfg("model=gp", "consensus=individual", "data.train_episodes=1", "data.test_episodes=1")
+    study = YuStudy.from_config(cfg)
+    scenario, network, model, obs, fusion = study.build()
+    import torch
+
+    ep = scenario.sample(1, network, torch.Generator().manual_seed(0))
+    centre = torch.tensor([4.0, 4.0], dtype=torch.float64)
+    init = initial_belief(ep, network, 0.25, centre, 4.0, 2.0)
+    track(ep, network, model, obs, fusion, scenario.ctx(), init, learn=True, learn_gate_std=0.5)
+    mask = model.gp.mask[:, : model.gp.n]
+    assert model.gp.n == scenario.steps
+    # communication-only nodes never measure, so under individual fusion they never learn
+    assert not mask[~network.is_sensor].any()
+    # without the gate every node appends every step
+    _, _, model2, _, _ = study.build()
+    track(ep, network, model2, obs, fusion, scenario.ctx(), init, learn=True, learn_gate_std=None)
+    assert model2.gp.mask[:, : model2.gp.n].all()

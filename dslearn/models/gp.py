@@ -127,7 +127,7 @@ class OnlineGP(nn.Module):
         """
         with torch.no_grad():
             ls = self.covar_module.base_kernel.lengthscale.to(a)  # (S, 1, 1)
-            d2 = (a.unsqueeze(-2) - b.unsqueeze(-3)).div(ls.unsqueeze(-1)).pow(2).sum(-1)
+            d2 = torch.cdist(a / ls, b / ls).pow(2)  # matmul-based for large inputs: no (Na, Nb, d) tensor
             return self.covar_module.outputscale.to(a).reshape(-1, 1, 1) * torch.exp(-0.5 * d2)
 
     def prior_mean(self, x: Tensor) -> Tensor:
