@@ -58,9 +58,10 @@ def initial_belief(
     pos = torch.where(seen.unsqueeze(-1), z0, centre.to(dtype))
     vel = torch.where(seen.unsqueeze(-1), (z1 - z0) / dt, torch.zeros_like(z0))
     mean = torch.cat([pos, vel], -1)  # (S', B, A, 4)
-    inf_seen = torch.tensor([1 / sig2, 1 / sig2, dt**2 / (2 * sig2), dt**2 / (2 * sig2)], dtype=dtype)
+    dev = z0.device
+    inf_seen = torch.tensor([1 / sig2, 1 / sig2, dt**2 / (2 * sig2), dt**2 / (2 * sig2)], dtype=dtype, device=dev)
     inf_weak = torch.tensor(
-        [prior_pos_std**-2, prior_pos_std**-2, prior_vel_std**-2, prior_vel_std**-2], dtype=dtype
+        [prior_pos_std**-2, prior_pos_std**-2, prior_vel_std**-2, prior_vel_std**-2], dtype=dtype, device=dev
     )
     diag = torch.where(seen.unsqueeze(-1), inf_seen * seen_w.clamp_min(1).unsqueeze(-1), inf_weak)
     mean = mean.flatten(-2)

@@ -152,3 +152,23 @@ def test_learning_gate_skips_uninformed_pairs(make_cfg):
     _, _, model2, _, _ = study.build()
     track(ep, network, model2, obs, fusion, scenario.ctx(), init, learn=True, learn_gate_std=None)
     assert model2.gp.mask[:, : model2.gp.n].all()
+
+
+@pytest.mark.gpu
+def test_cuda_run_matches_cpu(make_cfg):
+    import torch
+
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    cpu = YuStudy.from_config(make_cfg("model=gp_increment", *TINY)).run()
+    gpu = YuStudy.from_config(make_cfg("model=gp_increment", "device=cuda", *TINY)).run()
+    assert (cpu["value"] - gpu["value"]).abs().max() < 1e-8
+
+
+def test_cuda_requested_without_device_is_a_config_error(make_cfg):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA device is present")
+    with pytest.raises(ConfigError, match="device=cuda"):
+        YuStudy.from_config(make_cfg("device=cuda", *TINY))
