@@ -126,6 +126,46 @@ def test_online_estep_equals_explicit_double_sum():
     torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-9)
 
 
+def test_online_estep_chunked_and_floored_equals_reference():
+    """The chunked, exponent-floored kernel product equals the plain unchunked formula (baddbmm, no floor),
+    also when most kernel entries underflow (particles far apart)."""
+    g = torch.Generator().manual_seed(5)
+    b, n, k = 5, 40, 2
+    d = stats_dim(k)
+    dyn = cv_model(0.05, 100.0, (1.0, 0.0))
+    x_prev = torch.randn(b, n, 4, generator=g) * torch.tensor([30.0, 30.0, 8.0, 8.0])  # far apart: exp(<-700)
+    x_new = dyn.sample(x_prev, g)
+    logw = torch.log_softmax(3 * torch.randn(b, n, generator=g), -1)
+    alpha = torch.softmax(torch.randn(b, n, k, generator=g), -1)
+    T_prev = torch.randn(b, n, k, d, generator=g)
+    e = torch.randn(b, n, generator=g)
+    pi = torch.tensor([[0.7, 0.3], [0.45, 0.55]]).expand(b, k, k)
+    eta = 0.2
+    # reference: the unchunked formula without the exponent floor
+    ref = x_new.mean(-2, keepdim=True)
+    zi, mj = dyn.whiten(x_new - ref), dyn.whiten(x_prev @ dyn.F.T - ref)
+    col = (-0.5 * (mj * mj).sum(-1) + logw)[:, None, :]
+    a = torch.baddbmm(col, zi, mj.transpose(1, 2))
+    assert (a - a.amax(-1, keepdim=True) < -745).float().mean() > 0.5  # the underflow regime is exercised
+    a = torch.exp(a - a.amax(-1, keepdim=True))
+    v = torch.cat([alpha[..., None], alpha[..., None] * T_prev], -1).reshape(b, n, -1)
+    u = torch.bmm(a, v).reshape(b, n, k, 1 + d)
+    fb, fbt = u[..., 0], u[..., 1:]
+    bm = fb[..., None, :] * pi.transpose(-1, -2)[..., None, :, :]
+    z = bm.sum(-1, keepdim=True)
+    want_part = torch.einsum("bikd,bkl->bild", fbt, pi) / z
+    got = {}
+    for chunk in (None, 1, 2, 3, 8):
+        dyn.kernel_chunk = chunk
+        got[chunk] = online_estep(x_prev, logw, alpha, T_prev, x_new, e, pi, eta, dyn)
+    for chunk, out in got.items():
+        assert torch.equal(out, got[None]) or torch.allclose(out, got[None], rtol=1e-13, atol=0), chunk
+    from dslearn.rbpf.filter import transition_stats
+
+    want = (1 - eta) * want_part + eta * transition_stats(bm / z, e)
+    torch.testing.assert_close(got[None], want, rtol=1e-12, atol=1e-12)
+
+
 def test_online_em_recovers_noise_parameters():
     """Known state (h = 0): online EM (eta_t = t^-0.7, burn-in 50) recovers mu, sigma and the TPM."""
     truth = make_params([0.0, 20.0], [1.0, 4.0], [0.85, 0.6])
@@ -320,6 +360,20 @@ def test_end_to_end_tiny_run(tmp_path):
     assert (tmp_path / "braga_tbn_fig4_parameters.png").exists()
 
 
+def test_worker_processes_match_serial():
+    """task.workers runs MC batches in separate processes; the results are identical to the serial run."""
+    from dslearn.studies import braga_tbn
+
+    over = {"task.mc_runs": 2, "task.mc_batch": 1, "task.steps": 12, "task.num_particles": 10,
+            "task.em.burn_in": 5, "task.strategies": "[noncooperative,consensus_1]", "task.steady_state_s": 0.3}
+    a = braga_tbn.run(_tiny_cfg(**over, **{"task.workers": 1}))
+    b = braga_tbn.run(_tiny_cfg(**over, **{"task.workers": 2}))
+    keep = a.metric != "wall_time_s"
+    assert a[keep].drop(columns="value").reset_index(drop=True).equals(b[keep].drop(columns="value").reset_index(drop=True))
+    assert a[keep].value.tolist() == b[keep].value.tolist()
+    assert sorted(set(a[keep].episode)) == [0, 1]
+
+
 def test_run_reproducible_and_bad_config():
     from dslearn.studies import braga_tbn
 
@@ -335,6 +389,7 @@ def test_run_reproducible_and_bad_config():
                       ({"task.strategies": "[consensus_x]"}, "consensus_<q>"),
                       ({"task.consensus.weights": "matrix", "task.consensus.matrix": "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"}, "22c"),
                       ({"task.num_particles": 0}, "num_particles"),
-                      ({"task.ess_threshold": 1.5}, "ess_threshold")):
+                      ({"task.ess_threshold": 1.5}, "ess_threshold"),
+                      ({"task.workers": 0}, "workers")):
         with pytest.raises(ConfigError, match=msg):
             braga_tbn.run(_tiny_cfg(**over))
