@@ -168,3 +168,13 @@ def test_gp_bad_hyperparameters():
         OnlineGP(1, 2, 2, noise_std=0.0)
     with pytest.raises(ConfigError, match="model.mean"):
         OnlineGP(1, 2, 2, mean="linear")
+
+
+@pytest.mark.parametrize("mean", ["zero", "identity", "constant"])
+def test_gp_fit_keeps_the_data(mean):
+    """Fitting changes hyperparameters only: the stored outputs are the same afterwards."""
+    gp = _filled(mean, n=30)
+    targets = gp.R[:, : gp.n] + gp.prior_mean(gp.X[:, : gp.n])
+    gp.fit(iters=3, lr=0.05)
+    after = gp.R[:, : gp.n] + gp.prior_mean(gp.X[:, : gp.n])
+    assert torch.allclose(after * gp.mask[:, : gp.n, None], targets * gp.mask[:, : gp.n, None], atol=1e-12)

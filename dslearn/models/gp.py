@@ -24,7 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import ConfigError, check_choice, check_positive
-from ..types import JITTER, StepContext
+from ..types import JITTER, StepContext, safe_cholesky
 from .base import MotionModel
 
 MEANS = ("zero", "constant", "identity")
@@ -227,8 +227,6 @@ class OnlineGP(nn.Module):
         diag = torch.where(m, self.noise_var.unsqueeze(-1).expand(-1, n), torch.zeros_like(K[..., 0]))
         K = K + torch.diag_embed(diag)
         K = K + torch.diag_embed((~m).to(K.dtype))  # decoupled unit rows for invalid points
-        from ..types import safe_cholesky
-
         self.L[:, :n, :n] = safe_cholesky(K)
         self.V[:, :n] = self._solve_lower(self.R[:, :n])
         self._alpha = None
@@ -307,12 +305,12 @@ class OnlineGP(nn.Module):
             return []
         X, m = self.X[:, :n], self.mask[:, :n]
         pair = (m.unsqueeze(-1) & m.unsqueeze(-2)).unsqueeze(1)  # (S, 1, n, n)
-        # residuals against a zero prior mean plus the learnable constant where selected
-        Y = self.R[:, :n] + self.prior_mean(X) - (self.prior_mean(X) if self.mean_type != "constant" else 0.0)
-        if self.mean_type == "constant":
-            Y = self.R[:, :n] + self.constant.detach().unsqueeze(1)
+        # targets of the GP part: the stored residuals against a fixed (zero/identity) mean, or the
+        # raw outputs when the constant mean is learned alongside the kernel
+        const = self.mean_type == "constant"
+        Y = self.R[:, :n] + (self.constant.detach().unsqueeze(1) if const else 0.0)
         params = list(self.covar_module.parameters()) + list(self.likelihood.parameters())
-        if self.mean_type == "constant":
+        if const:
             params.append(self.constant)
         opt = torch.optim.Adam(params, lr=lr)
         losses = []
@@ -323,15 +321,15 @@ class OnlineGP(nn.Module):
             noise = self.likelihood.noise.reshape(-1, 1, 1, 1)
             mm = m.unsqueeze(1).unsqueeze(-1).to(X.dtype)
             K = K + eye * (noise * mm + (1 - mm))
-            mu = self.constant.unsqueeze(-1) * m.unsqueeze(1) if self.mean_type == "constant" else torch.zeros_like(Y.transpose(-1, -2))
+            mu = self.constant.unsqueeze(-1) * m.unsqueeze(1) if const else torch.zeros_like(Y.transpose(-1, -2))
             dist = gpytorch.distributions.MultivariateNormal(mu, K)
             loss = -dist.log_prob(Y.transpose(-1, -2) * m.unsqueeze(1)).sum() / max(1, int(m.sum()))
             loss.backward()
             opt.step()
             losses.append(float(loss.detach()))
-        with torch.no_grad():
-            self.R[:, :n] = Y - self.prior_mean(X) if self.mean_type != "constant" else Y - self.constant.unsqueeze(1)
-            self.R[:, :n] *= m.unsqueeze(-1)
+        if const:
+            with torch.no_grad():
+                self.R[:, :n] = (Y - self.constant.unsqueeze(1)) * m.unsqueeze(-1)
         self.refactorize()
         return losses
 
@@ -436,14 +434,6 @@ class GPMotionModel(MotionModel):
     def fit(self) -> "GPMotionModel":
         self.gp.fit(self.fit_iters, self.fit_lr)
         return self
-
-    @torch.no_grad()
-    def rollout(self, x0: Tensor, steps: int, ctx: StepContext) -> Tensor:
-        out, x = [], x0
-        for _ in range(steps):
-            x = self(x, ctx)
-            out.append(x)
-        return torch.stack(out, dim=-2)
 
     def save(self, path) -> None:
         n = self.gp.n
