@@ -77,26 +77,35 @@ JITTER = JitterLog()
 
 
 def safe_cholesky(m: Tensor, max_tries: int = 6, log: Optional[JitterLog] = None) -> Tensor:
-    """Cholesky factor of SPD ``m`` (*B, D, D); adds growing diagonal jitter if it fails.
+    """Cholesky factor of SPD ``m`` (*B, D, D); adds growing diagonal jitter where it fails.
 
-    Jitter starts at 1e-10 times the mean diagonal and grows tenfold; each use is recorded
-    in ``log`` (default: the module-wide :data:`JITTER`), so runs can report it.
+    Jitter is per matrix and only for the matrices whose factorisation failed: it starts at
+    1e-10 times that matrix's mean absolute diagonal and grows tenfold until the factor exists.
+    Matrices of the batch that factor cleanly are left untouched (so one near-singular node
+    or episode never perturbs the others). Each jittered matrix is recorded in ``log``
+    (default: the module-wide :data:`JITTER`), so runs can report it.
     """
     m = symmetrize(m)
     chol, info = torch.linalg.cholesky_ex(m)
-    if not bool((info > 0).any()):
+    bad = info > 0
+    if not bool(bad.any()):
         return chol
     log = log or JITTER
-    scale = m.diagonal(dim1=-2, dim2=-1).abs().mean().clamp_min(1e-12)
+    scale = m.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(1e-12)
+    jitter = torch.where(bad, 1e-10 * scale, torch.zeros_like(scale))
     eye = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device)
-    jitter = 1e-10 * float(scale)
+    needed = bad.clone()
     for _ in range(max_tries + 6):
-        chol, info = torch.linalg.cholesky_ex(m + jitter * eye)
-        if not bool((info > 0).any()):
-            log.record(jitter)
+        chol, info = torch.linalg.cholesky_ex(m + jitter[..., None, None] * eye)
+        still = info > 0
+        if not bool(still.any()):
+            for j in jitter[needed].tolist():
+                log.record(j)
             return chol
-        jitter *= 10.0
-    raise torch.linalg.LinAlgError(f"matrix not positive definite even with jitter {jitter:g}")
+        jitter = torch.where(still, 10.0 * jitter, jitter)
+    raise torch.linalg.LinAlgError(
+        f"{int(still.sum())} matrix(es) not positive definite even with jitter {float(jitter.max()):g}"
+    )
 
 
 def spd_inverse(m: Tensor, log: Optional[JitterLog] = None) -> Tensor:

@@ -101,3 +101,24 @@ def test_zero_iterations_hybrid_is_individual():
     a = make_fusion("hybrid", uniform(net.adjacency), 0, "one")(*args)
     b = make_fusion("individual", uniform(net.adjacency), 0, "one")(*args)
     assert torch.allclose(a[0], b[0]) and torch.allclose(a[1], b[1])
+
+
+def test_safe_cholesky_jitters_only_the_failing_matrix():
+    from dslearn.types import JitterLog, safe_cholesky
+
+    good = torch.tensor([[4.0, 1.0], [1.0, 3.0]], dtype=torch.float64)
+    big = 1e12 * torch.eye(2, dtype=torch.float64)
+    singular = torch.tensor([[1.0, 1.0], [1.0, 1.0]], dtype=torch.float64)
+    m = torch.stack([good, big, singular])
+    log = JitterLog()
+    L = safe_cholesky(m, log=log)
+    # the matrices that factor cleanly are untouched, bit for bit
+    torch.testing.assert_close(L[:2], torch.linalg.cholesky(m[:2]), rtol=0, atol=0)
+    # the singular one gets a small jitter scaled by its own diagonal, not by the batch's (1e12)
+    rec = L[2] @ L[2].T
+    assert torch.isfinite(L).all()
+    assert (rec - singular).abs().max() < 1e-6
+    assert log.count == 1 and 0 < log.max_jitter < 1e-6
+    # a clean batch records nothing
+    safe_cholesky(m[:2], log=log)
+    assert log.count == 1
