@@ -1,19 +1,44 @@
 """``dslearn-bench``: benchmarks that print figures (not timed tests).
 
-Workloads:
-  gp        online GP step (predict + append, S nodes) at data-set sizes n, against a reference
-            that refactorises K from scratch (torch.linalg.cholesky) at every step, in the same process.
-  protocol  the Yu Table I + II protocol (250 episodes: 200 train + 50 test) for every model x
-            fusion of ``--models`` / ``--fusions``, one after the other in this process.
+Every workload item runs in its own fresh (spawned) process, so its peak resident memory
+(``ru_maxrss``) is its own; where a reference is given, the reference
+(:mod:`dslearn.reference` or a from-scratch refit) runs *in that same process* and the table
+reports the ratio ``reference / fast``.
 
-Results: a table printed as Markdown and written to ``--out`` (CSV + Markdown).
+Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
+
+  reference  Yu protocol, fast path vs the straightforward reference (per-node loops, GPyTorch
+             ExactGP refit from scratch at every step, autograd Jacobians) on the SAME reduced
+             protocol (``--ref-train`` + ``--ref-test`` episodes), both timed in one process;
+             models x fusions of ``--models`` / ``--fusions``; also checks the numbers agree.
+  protocol   the full Table I + II protocol (200 train + 50 test episodes, 10 nodes) for every
+             model x fusion, fast path only, spread over ``--workers`` processes (1 thread each).
+  gp         one online GP step (predict with Jacobian and variance + append) per node at data-set
+             sizes n, for the exact GP and the window / SGPR / SSGP variants, against a refit from
+             scratch (kernel matrix + Cholesky) at every step; log-log plot with fitted slopes.
+  fantasy    GPyTorch ExactGP with defaults (first predict = its caches) and ``get_fantasy_model``
+             at n = 2,400 (full suite only).
+  network    a network of S = 10 / 50 / 200 / 1,000 nodes tracking 2 agents for 100 steps with
+             online GP learning (hybrid consensus); reference (per-node loops) on the first steps.
+  dtype      float32 vs float64 on the same seeds (time and accuracy of the Yu study).
+  studies    wall time of the other studies' default runs (``dslearn-run ...`` subprocesses).
+
+Outputs in ``--out`` (default ``benchmarks/``): ``bench.csv``, ``bench.md`` (with machine info),
+``gp_step_cost.png``. ``--quick`` runs a reduced set in a few minutes (without ``studies`` and
+``fantasy`` unless named).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import multiprocessing as mp
+import os
 import platform
 import resource
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -22,102 +47,461 @@ import torch
 
 from .io import atomic_write_csv, atomic_write_text
 
+ALL = ("reference", "protocol", "gp", "fantasy", "network", "dtype", "studies")
+
 
 def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def bench_gp(sizes=(600, 2400), nodes=10, dim=8, steps=20) -> list[dict]:
-    from .models.gp import OnlineGP
-
-    rows = []
-    gen = torch.Generator().manual_seed(0)
-    for n in sizes:
-        gp = OnlineGP(nodes, dim, dim, capacity=n + steps + 1)
-        X = torch.randn(n, nodes, dim, generator=gen, dtype=torch.float64)
-        for i in range(n):
-            gp.append(X[i], torch.sin(X[i]))
-        xs = torch.randn(steps, nodes, dim, generator=gen, dtype=torch.float64)
-        t0 = time.perf_counter()
-        for i in range(steps):
-            gp.predict(xs[i].unsqueeze(1))
-            gp.append(xs[i], torch.sin(xs[i]))
-        inc = (time.perf_counter() - t0) / steps
-        # reference: refit from scratch (kernel matrix + Cholesky + solves) every step
-        Xr = gp.X[:, : gp.n].clone()
-        t0 = time.perf_counter()
-        ref_steps = max(2, steps // 5)
-        for i in range(ref_steps):
-            K = gp.kernel(Xr, Xr) + 0.25 * torch.eye(Xr.shape[1], dtype=torch.float64)
-            L = torch.linalg.cholesky(K)
-            a = torch.cholesky_solve(torch.sin(Xr), L)
-            ks = gp.kernel(Xr, xs[i].unsqueeze(1))
-            _ = ks.transpose(-1, -2) @ a, torch.linalg.solve_triangular(L, ks, upper=False)
-        ref = (time.perf_counter() - t0) / ref_steps
-        rows.append(
-            dict(workload=f"gp step n={n}", nodes=nodes, wall_s=inc * steps, ms_per_step=1e3 * inc,
-                 ms_per_step_node=1e3 * inc / nodes, reference_ms_per_step=1e3 * ref, speedup=ref / inc,
-                 peak_mb=_peak_mb())
-        )
-    return rows
+def _cuda_peak_mb(device) -> float | None:
+    if str(device).startswith("cuda"):
+        return torch.cuda.max_memory_allocated() / 2**20
+    return None
 
 
-def bench_protocol(models, fusions, train=200, test=50) -> list[dict]:
+def machine_info() -> dict:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        load = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:
+        load = "?"
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "python": platform.python_version(),
+        "loadavg_1_5_15": load,
+    }
+
+
+def _compose(overrides):
     from hydra import compose, initialize_config_dir
 
     from .run import CONF_DIR
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        return compose("config", overrides=list(overrides))
+
+
+# ------------------------------------------------------------------------------------------
+# workload items (each runs in a child process; returns a list of row dicts)
+def item_reference(model: str, fusion: str, train: int, test: int, device: str = "cpu") -> list[dict]:
+    from .reference import ReferenceYu
     from .studies.yu import YuStudy
 
+    ov = [f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}", f"data.test_episodes={test}", f"device={device}"]
+    cfg = _compose(ov)
+    t0 = time.perf_counter()
+    fast = YuStudy.from_config(cfg).run()
+    t_fast = time.perf_counter() - t0
+    cfg = _compose([o for o in ov if not o.startswith("device")])
+    t0 = time.perf_counter()
+    ref = ReferenceYu.from_config(cfg).run()
+    t_ref = time.perf_counter() - t0
+    diff = float((fast["value"].to_numpy() - ref["value"].to_numpy()).__abs__().max())
+    learn = model.startswith("gp")
+    node_steps = 10 * 12 * ((train if learn else 0) + test)
+    return [dict(workload="reference", item=f"yu {model}/{fusion} {train}+{test} ep", nodes=10, wall_s=t_fast,
+                 ms_per_node_step=1e3 * t_fast / node_steps, reference_s=t_ref, ratio=t_ref / t_fast,
+                 reference_note="same reduced protocol, same process", max_abs_diff=diff, peak_mb=_peak_mb())]
+
+
+def item_protocol(model: str, fusion: str, train: int, test: int, device: str = "cpu", dtype: str = "float64",
+                  workload: str = "protocol") -> list[dict]:
+    from .studies.yu import YuStudy
+
+    cfg = _compose([f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}",
+                    f"data.test_episodes={test}", f"device={device}", f"dtype={dtype}"])
+    t0 = time.perf_counter()
+    df = YuStudy.from_config(cfg).run()
+    wall = time.perf_counter() - t0
+    learn = model.startswith("gp")
+    node_steps = 10 * 12 * ((train if learn else 0) + test)
+    sens = df[df["node_kind"] == "sensor"]
+    return [dict(workload=workload, item=f"yu {model}/{fusion} {train}+{test} ep {dtype}",
+                 nodes=10, wall_s=wall, ms_per_node_step=1e3 * wall / node_steps,
+                 track_err=float(sens[sens.metric == "track_err"]["value"].mean()),
+                 pred_err=float(sens[sens.metric == "pred_err"]["value"].mean()),
+                 peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device))]
+
+
+def _make_gp(variant: str, nodes: int, n: int, dim: int, extra: int, gen, dtype=torch.float64):
+    """A GP of ``variant`` holding ``n`` random points per node (bulk-loaded)."""
+    from .models.gp import OnlineGP
+    from .models.sparse import SGPR, SSGP, WindowGP
+
+    X = 2 * torch.randn(nodes, n, dim, generator=gen, dtype=dtype)
+    Y = torch.sin(X)
+    hyp = dict(outputscale=1.0, lengthscale=2.0, noise_std=0.5, dtype=dtype)
+    if variant in ("exact", "window"):
+        if variant == "exact":
+            gp = OnlineGP(nodes, dim, dim, capacity=n + extra + 1, **hyp)
+            keep = n
+        else:
+            gp = WindowGP(nodes, dim, dim, window=1000, **hyp)
+            keep = min(n, 1000)
+        gp.X[:, :keep], gp.R[:, :keep], gp.mask[:, :keep] = X[:, n - keep :], Y[:, n - keep :], True
+        gp.n = keep
+        gp.refactorize()
+        if variant == "window":
+            gp.seen = n
+        return gp
+    gp = SGPR(nodes, dim, dim, inducing=128, **hyp) if variant == "sgpr" else SSGP(nodes, dim, dim, features=200, **hyp)
+    gp.extend(X, Y)
+    return gp
+
+
+def item_gp(variant: str, n: int, nodes: int = 1, dim: int = 8, steps: int = 20, ref_steps: int = 2) -> list[dict]:
+    gen = torch.Generator().manual_seed(0)
+    t0 = time.perf_counter()
+    gp = _make_gp(variant, nodes, n, dim, steps, gen)
+    build = time.perf_counter() - t0
+    xs = 2 * torch.randn(steps + 1, nodes, dim, generator=gen, dtype=torch.float64)
+    gp.predict(xs[0].unsqueeze(1))
+    gp.append(xs[0], torch.sin(xs[0]))  # warm-up
+    t0 = time.perf_counter()
+    for i in range(1, steps + 1):
+        gp.predict(xs[i].unsqueeze(1))
+        gp.append(xs[i], torch.sin(xs[i]))
+    step = (time.perf_counter() - t0) / steps
+    row = dict(workload="gp", item=f"gp {variant} n={n} S={nodes}", variant=variant, n=n, nodes=nodes, wall_s=step * steps,
+               ms_per_step=1e3 * step, ms_per_node_step=1e3 * step / nodes, build_s=build, peak_mb=_peak_mb())
+    if variant == "exact" and ref_steps > 0:
+        # reference: kernel matrix + Cholesky from scratch at every step (what a refit does)
+        Xr, Yr = gp.X[:, : gp.n].clone(), gp.R[:, : gp.n].clone()
+        eye = torch.eye(Xr.shape[1], dtype=torch.float64)
+        t0 = time.perf_counter()
+        for i in range(ref_steps):
+            K = gp.kernel(Xr, Xr) + gp.noise_var.reshape(-1, 1, 1) * eye
+            L = torch.linalg.cholesky(K)
+            a = torch.cholesky_solve(Yr, L)
+            ks = gp.kernel(Xr, xs[i].unsqueeze(1))
+            _ = ks.transpose(-1, -2) @ a, torch.linalg.solve_triangular(L, ks, upper=False)
+        ref = (time.perf_counter() - t0) / ref_steps
+        row.update(reference_ms_per_step=1e3 * ref, ratio=ref / step, reference_note=f"kernel matrix + Cholesky from scratch per step ({ref_steps} steps timed)")
+        row["peak_mb"] = _peak_mb()
+    return [row]
+
+
+def item_fantasy(n: int = 2400, dim: int = 8, steps: int = 2) -> list[dict]:
+    """GPyTorch defaults at n points (one node, ``dim`` outputs as a batch): refit vs fantasy."""
+    import gpytorch
+
+    from .reference import _ExactGP
+
+    gen = torch.Generator().manual_seed(0)
+    X = 2 * torch.randn(n, dim, generator=gen, dtype=torch.float64)
+    Y = torch.sin(X).T.contiguous()
+    lik = gpytorch.likelihoods.GaussianLikelihood(batch_shape=torch.Size([dim]))
+    m = _ExactGP(X.unsqueeze(0).expand(dim, -1, -1), Y, lik, dim).double()
+    lik.noise = torch.full((dim, 1), 0.25)
+    m.covar_module.base_kernel.lengthscale = torch.full((dim, 1, 1), 2.0)
+    m.eval(), lik.eval()
+    xs = 2 * torch.randn(steps + 1, dim, generator=gen, dtype=torch.float64)
     rows = []
-    for model in models:
-        for fusion in fusions:
-            with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-                cfg = compose(
-                    "config",
-                    overrides=[f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}", f"data.test_episodes={test}"],
-                )
-            t0 = time.perf_counter()
-            df = YuStudy.from_config(cfg).run()
-            wall = time.perf_counter() - t0
-            steps = (train if model.startswith("gp") else 0) + test  # episodes filtered
-            avg = df[(df["node_kind"] == "sensor") & (df["metric"] == "track_err")]["value"].mean()
-            rows.append(dict(workload=f"yu {model}/{fusion} {train}+{test}", nodes=10, wall_s=wall,
-                             ms_per_step=1e3 * wall / max(1, steps * 12), track_err=avg, peak_mb=_peak_mb()))
-            print(f"  {rows[-1]['workload']}: {wall:.1f}s", flush=True)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        m(xs[0].reshape(1, 1, -1).expand(dim, 1, -1)).variance  # builds the caches (defaults: CG above 800)
+    first = time.perf_counter() - t0
+    rows.append(dict(workload="fantasy", item=f"gpytorch ExactGP defaults: first predict (caches) n={n}", n=n, nodes=1,
+                     wall_s=first, ms_per_step=1e3 * first, peak_mb=_peak_mb()))
+    t0 = time.perf_counter()
+    fm = m
+    with torch.no_grad():
+        for i in range(steps):
+            x = xs[i + 1].reshape(1, 1, -1).expand(dim, 1, -1)
+            fm = fm.get_fantasy_model(x, torch.sin(xs[i + 1]).reshape(dim, 1))
+            fm(x).variance
+    t = (time.perf_counter() - t0) / steps
+    rows.append(dict(workload="fantasy", item=f"gpytorch get_fantasy_model + predict n={n}", n=n, nodes=1, wall_s=t * steps,
+                     ms_per_step=1e3 * t, ms_per_node_step=1e3 * t, peak_mb=_peak_mb()))
     return rows
 
 
+def _network_cfg(nodes: int, steps: int, model: str = "gp_increment"):
+    sensors = 4 if nodes == 10 else max(1, round(0.4 * nodes))
+    return _compose([f"model={model}", "consensus=hybrid", f"network.num_sensors={sensors}", f"network.num_comm={nodes - sensors}",
+                     f"scenario.horizon={steps * 0.25}", "data.train_episodes=1", "data.test_episodes=1",
+                     "+model.capacity=128"])
+
+
+def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str = "cpu") -> list[dict]:
+    from .studies.yu import YuStudy, _to, DTYPES
+    from .tracker import initial_belief, track
+
+    cfg = _network_cfg(nodes, steps)
+    cfg.device = device
+    study = YuStudy.from_config(cfg)
+    scenario, network, model, obs, fusion = study.build()
+    ctx = scenario.ctx()
+    ep = _to(scenario.sample(1, network, torch.Generator().manual_seed(2)), DTYPES["float64"], device)
+    centre = torch.tensor([4.0, 4.0], dtype=torch.float64, device=device)
+    init = initial_belief(ep, network, ctx.dt, centre, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
+    t0 = time.perf_counter()
+    res = track(ep, network, model, obs, fusion, ctx, init, learn=True)
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    wall = time.perf_counter() - t0
+    assert bool(torch.isfinite(res.mean).all())
+    row = dict(workload="network", item=f"network S={nodes}, {steps} steps, GP learning, hybrid", nodes=nodes, wall_s=wall,
+               ms_per_step=1e3 * wall / steps, ms_per_node_step=1e3 * wall / (steps * nodes),
+               peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device))
+    if ref_steps:
+        from .reference import ReferenceGP, ReferenceYu
+        from .sim.scenario import Episodes
+
+        mc = cfg.model
+        ref_nodes = [ReferenceGP(scenario.state_dim, mc.outputscale, mc.lengthscale, mc.noise_std, mc.mean, mc.noise, torch.float64)
+                     for _ in range(nodes)]
+        part = Episodes(ep.states[:, : ref_steps + 1].cpu(), ep.meas[:, :, : ref_steps + 1].cpu(), ep.visible[:, :, : ref_steps + 1].cpu())
+        ref = ReferenceYu(cfg)
+        t0 = time.perf_counter()
+        ref._track_one(part, 0, ref_nodes, fusion, fusion.weights.double(), float(obs.noise_std) ** 2,
+                       init[0][:, 0].cpu(), init[1][:, 0].cpu(), learn=True, gate=None)
+        t_ref = time.perf_counter() - t0
+        part_fast = Episodes(ep.states[:, : ref_steps + 1], ep.meas[:, :, : ref_steps + 1], ep.visible[:, :, : ref_steps + 1])
+        _, network2, model2, obs2, fusion2 = study.build()
+        t0 = time.perf_counter()
+        track(part_fast, network2, model2, obs2, fusion2, ctx, init, learn=True)
+        t_fast = time.perf_counter() - t0
+        row.update(reference_s=t_ref, ratio=t_ref / t_fast,
+                   reference_note=f"both timed on the first {ref_steps} steps only (ratio of those)")
+    return [row]
+
+
+def item_study(args: list[str], label: str) -> list[dict]:
+    with tempfile.TemporaryDirectory() as tmp:
+        code = ("import resource, subprocess, sys, time; t = time.perf_counter(); "
+                "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); w = time.perf_counter() - t; "
+                "print('RC', r.returncode, 'WALL', w, 'RSS', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); "
+                "print(r.stderr[-2000:] if r.returncode else '')")
+        out = subprocess.run([sys.executable, "-c", code, "dslearn-run", *args, f"hydra.run.dir={tmp}/run", "print_table=false"],
+                             capture_output=True, text=True)
+    toks = out.stdout.split()
+    try:
+        rc, wall, rss = int(toks[1]), float(toks[3]), float(toks[5]) / 1024
+    except (IndexError, ValueError):
+        rc, wall, rss = -1, float("nan"), float("nan")
+    return [dict(workload="studies", item=f"dslearn-run {' '.join(args)}" + ("" if rc == 0 else f" (FAILED rc={rc})"), wall_s=wall,
+                 peak_mb=rss, reference_note=label)]
+
+
+def _child(fn_name, kwargs, threads, q):
+    torch.set_num_threads(threads)
+    try:
+        q.put(("ok", globals()[fn_name](**kwargs)))
+    except Exception as e:  # noqa: BLE001 - a failed item is reported in the table, not fatal
+        q.put(("err", f"{type(e).__name__}: {e}"))
+
+
+def run_item(fn_name: str, threads: int = 1, **kwargs) -> list[dict]:
+    """Run one item in a fresh spawned process (own peak memory); returns its rows."""
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    p = ctx.Process(target=_child, args=(fn_name, kwargs, threads, q))
+    p.start()
+    status, payload = q.get()
+    p.join()
+    if status != "ok":
+        print(f"  {fn_name}({kwargs}) failed: {payload}", flush=True)
+        return [dict(workload=fn_name.replace("item_", ""), item=f"{kwargs} FAILED: {payload}")]
+    for r in payload:
+        print("  " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items() if v is not None), flush=True)
+    return payload
+
+
+def run_parallel(jobs: list[tuple[str, dict]], workers: int, threads: int = 1) -> tuple[list[dict], float]:
+    """Run items in ``workers`` concurrent fresh processes; returns rows and total wall time."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    t0 = time.perf_counter()
+    rows = []
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                             initializer=torch.set_num_threads, initargs=(threads,)) as ex:
+        futs = [ex.submit(_call, name, kw) for name, kw in jobs]
+        for f in futs:
+            rows += f.result()
+    return rows, time.perf_counter() - t0
+
+
+def _call(name, kw):
+    out = globals()[name](**kw)
+    for r in out:
+        print(f"  {r['item']}: {r['wall_s']:.1f}s", flush=True)
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+def plot_gp(df: pd.DataFrame, path: Path) -> dict:
+    """log-log plot of ms per node step vs n; returns the fitted slopes per variant."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    slopes = {}
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    g = df[(df.workload == "gp") & (df.nodes == 1)]
+    for variant, sub in g.groupby("variant"):
+        sub = sub.sort_values("n")
+        x, y = np.log10(sub.n.to_numpy(float)), np.log10(sub.ms_per_node_step.to_numpy(float))
+        fit = sub.n >= 1000
+        slope = float(np.polyfit(x[fit], y[fit], 1)[0]) if fit.sum() >= 2 else float("nan")
+        slopes[variant] = slope
+        ax.loglog(sub.n, sub.ms_per_node_step, "o-", label=f"{variant} (slope {slope:.2f})")
+    ref = g[g.variant == "exact"].dropna(subset=["ratio"]) if "ratio" in g else g.iloc[:0]
+    if len(ref):
+        rms = ref.ms_per_node_step * ref.ratio
+        fit = ref.n >= 1000
+        rs = float(np.polyfit(np.log10(ref.n[fit]), np.log10(rms[fit]), 1)[0]) if fit.sum() >= 2 else float("nan")
+        slopes["refit from scratch"] = rs
+        ax.loglog(ref.n, rms, "s--", color="grey", label=f"refit from scratch (slope {rs:.2f})")
+    ax.set_xlabel("data-set size n (points per node)")
+    ax.set_ylabel("ms per GP step per node (predict + append)")
+    ax.set_title("Online GP step cost (1 node, 1 thread; slopes fitted on n >= 1000)", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return slopes
+
+
+def plan(workloads, quick: bool, a) -> list:
+    """The list of (item function, kwargs) or parallel groups to run."""
+    steps = []
+    models, fusions = a.models.split(","), a.fusions.split(",")
+    if "reference" in workloads:
+        tr, te = (2, 2) if quick else (a.ref_train, a.ref_test)
+        for m in models:
+            for f in fusions:
+                steps.append(("item_reference", dict(model=m, fusion=f, train=tr, test=te, device=a.device)))
+    if "gp" in workloads:
+        exact = (300, 600, 1200, 2400) if quick else (300, 600, 1200, 2400, 5000, 10000)
+        sparse = (600, 2400, 10000) if quick else (600, 2400, 10000, 50000)
+        for n in exact:
+            steps.append(("item_gp", dict(variant="exact", n=n, ref_steps=(2 if n <= 5000 else 1))))
+        for v in ("window", "sgpr", "ssgp"):
+            for n in sparse:
+                steps.append(("item_gp", dict(variant=v, n=n)))
+        if not quick:
+            steps.append(("item_gp", dict(variant="exact", n=2400, nodes=10, ref_steps=1)))
+    if "fantasy" in workloads and not quick:
+        steps.append(("item_fantasy", dict(n=2400)))
+    if "network" in workloads:
+        for s in ((10, 50, 200) if quick else (10, 50, 200, 1000)):
+            steps.append(("item_network", dict(nodes=s, ref_steps=(10 if s <= 50 else 0), device=a.device)))
+    if "dtype" in workloads:
+        tr, te = (20, 20) if quick else (200, 50)
+        steps.append(("parallel", [("item_protocol", dict(model="gp_increment", fusion="hybrid", train=tr, test=te, dtype=d, device=a.device,
+                                                        workload="dtype"))
+                                   for d in ("float64", "float32")]))
+    if "protocol" in workloads:
+        tr, te = (a.train, a.test) if not quick else (50, 50)
+        steps.append(("parallel", [("item_protocol", dict(model=m, fusion=f, train=tr, test=te, device=a.device))
+                                   for m in sorted(models, key=lambda m: not m.startswith("gp")) for f in fusions]))
+    if "studies" in workloads:
+        for args, label in ((["experiment=jiang_fg"], "default run"), (["experiment=braga_tbn"], "default run"),
+                            (["task=liu_dgpt"], "default run")):
+            steps.append(("item_study", dict(args=args, label=label)))
+    return steps
+
+
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(prog="dslearn-bench", description="dslearn benchmarks (print figures)")
-    p.add_argument("workloads", nargs="*", default=["gp"], choices=["gp", "protocol"])
-    p.add_argument("--models", default="lin,sfm,gp,gp_increment")
+    p = argparse.ArgumentParser(prog="dslearn-bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("workloads", nargs="*", help=f"any of {', '.join(ALL)} (default: all)")
+    p.add_argument("--quick", action="store_true", help="reduced sizes: a few minutes")
+    p.add_argument("--models", default="lin,sfm,gp_increment")
     p.add_argument("--fusions", default="individual,hybrid")
     p.add_argument("--train", type=int, default=200)
     p.add_argument("--test", type=int, default=50)
-    p.add_argument("--sizes", default="600,2400")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--out", default="bench")
+    p.add_argument("--ref-train", type=int, default=5, help="reference workload: training episodes (reduced protocol)")
+    p.add_argument("--ref-test", type=int, default=5, help="reference workload: test episodes (reduced protocol)")
+    p.add_argument("--workers", type=int, default=2, help="concurrent processes for the protocol / dtype items")
+    p.add_argument("--threads", type=int, default=1, help="torch threads per process")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--out", default="benchmarks")
+    p.add_argument("--merge", nargs="+", metavar="DIR", help="only merge the bench.csv of earlier runs into --out")
     a = p.parse_args(argv)
+    if a.merge:
+        return merge(a.merge, a.out)
+    workloads = a.workloads or [w for w in ALL if not (a.quick and w in ("studies", "fantasy"))]
+    bad = [w for w in workloads if w not in ALL]
+    if bad:
+        p.error(f"unknown workload(s) {bad}; choose from {', '.join(ALL)}")
     torch.set_num_threads(a.threads)
+    info = machine_info()
+    print("machine: " + ", ".join(f"{k}={v}" for k, v in info.items()), flush=True)
     rows = []
-    t0 = time.perf_counter()
-    if "gp" in a.workloads:
-        rows += bench_gp(tuple(int(s) for s in a.sizes.split(",")))
-    if "protocol" in a.workloads:
-        rows += bench_protocol(a.models.split(","), a.fusions.split(","), a.train, a.test)
-    total = time.perf_counter() - t0
+    t_all = time.perf_counter()
+    for name, kw in plan(workloads, a.quick, a):
+        if name == "parallel":
+            r, wall = run_parallel(kw, a.workers, a.threads)
+            rows += r
+            label = "dtype" if any(j[1].get("dtype") == "float32" for j in kw) else "protocol"
+            rows.append(dict(workload=label, item=f"{label}: all {len(kw)} runs end to end, {a.workers} processes x {a.threads} thread",
+                             wall_s=wall, nodes=10, peak_mb=max((x.get("peak_mb") or 0) for x in r),
+                             reference_note=f"sum of the runs' own wall times: {sum(x['wall_s'] for x in r):.1f}s"))
+            print(f"  {rows[-1]['item']}: {wall:.1f}s", flush=True)
+        else:
+            rows += run_item(name, a.threads, **kw)
+    total = time.perf_counter() - t_all
+    info["loadavg_after"] = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    info["suite"] = "quick" if a.quick else "full"
+    info["total_s"] = round(total, 1)
     df = pd.DataFrame(rows)
-    df["machine"] = f"{platform.machine()} {torch.get_num_threads()} thread(s), torch {torch.__version__}"
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+    for k, v in info.items():
+        df[k] = v
+    write_outputs(df, Path(a.out))
+
+
+def write_outputs(df: pd.DataFrame, out: Path) -> str:
+    """``bench.csv``, ``bench.md`` (machine lines, table, slopes, protocol ratio) and the GP plot."""
     from .report import markdown
 
-    md = markdown(df.round(4))
+    out.mkdir(parents=True, exist_ok=True)
+    extra = []
+    if (df.workload == "gp").any():
+        slopes = plot_gp(df, out / "gp_step_cost.png")
+        extra.append("GP step cost slopes (log-log, n >= 1000): " + ", ".join(f"{k} {v:.2f}" for k, v in slopes.items()))
+    # the protocol acceptance figure: fast vs reference on the same reduced protocol
+    ref = df[df.workload == "reference"]
+    if len(ref) and "reference_s" in ref:
+        extra.append(f"reduced protocol ({len(ref)} runs): fast {ref.wall_s.sum():.1f}s, reference {ref.reference_s.sum():.1f}s, "
+                     f"ratio {ref.reference_s.sum() / ref.wall_s.sum():.1f}x (same process, same protocol)")
+    cols = [c for c in ("workload", "item", "n", "nodes", "wall_s", "ms_per_step", "ms_per_node_step", "reference_s",
+                        "reference_ms_per_step", "ratio",
+                        "max_abs_diff", "track_err", "pred_err", "peak_mb", "cuda_peak_mb", "reference_note") if c in df]
+    show = df[cols].copy()
+    for c in show.columns:
+        if show[c].dtype.kind == "f":
+            show[c] = show[c].map(lambda v: "" if pd.isna(v) else (f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"))
+    show = show.fillna("")
+    mcols = [c for c in ("cpu", "cores", "torch", "threads", "python", "loadavg_1_5_15", "loadavg_after", "suite", "total_s") if c in df]
+    machines = df[mcols].drop_duplicates()
+    head = "\n".join("Machine: " + ", ".join(f"{k}={v}" for k, v in r.items()) for r in machines.to_dict("records"))
+    md = "\n\n".join([head, markdown(show), *extra])
     atomic_write_csv(df, out / "bench.csv")
     atomic_write_text(out / "bench.md", md + "\n")
     print(md)
-    print(f"\ntotal {total:.1f}s; wrote {out / 'bench.csv'}")
+    print(f"\nwrote {out / 'bench.csv'}, {out / 'bench.md'}")
+    return md
 
+
+def merge(dirs: list[str], out: str) -> None:
+    """Concatenate the ``bench.csv`` of several runs (e.g. workloads run separately) into one table."""
+    df = pd.concat([pd.read_csv(Path(d) / "bench.csv") for d in dirs], ignore_index=True)
+    write_outputs(df, Path(out))
 
 if __name__ == "__main__":
     main()

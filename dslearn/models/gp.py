@@ -31,6 +31,17 @@ MEANS = ("zero", "constant", "identity")
 NOISE_MODES = ("latent", "predictive")
 
 
+def _same_input(a: Tensor, b: Tensor, version: int) -> bool:
+    """Whether ``b`` holds the values ``a`` had when it was predicted at (``a._version`` was
+    ``version``): the same memory, unmodified since (no host sync, any device), or, on CPU
+    only, equal values."""
+    if a.shape != b.shape:
+        return False
+    if a.data_ptr() == b.data_ptr() and a.stride() == b.stride() and b._version == version:
+        return True
+    return a.device.type == "cpu" and torch.equal(a, b)
+
+
 class OnlineGP(nn.Module):
     r"""``S`` exact GPs with a shared RBF kernel per node, updated online.
 
@@ -81,6 +92,7 @@ class OnlineGP(nn.Module):
         self.to(dtype=dtype, device=device)
         self.dtype_, self.device_ = dtype, torch.device(device)
         self.n = 0
+        self.clamped = torch.zeros((), dtype=torch.long, device=self.device_)  # clamped diagonals (CUDA)
         self._alloc(int(capacity))
 
     # storage -----------------------------------------------------------------------------
@@ -99,7 +111,9 @@ class OnlineGP(nn.Module):
     def _grow(self) -> None:
         old = (self.X, self.R, self.V, self.L, self.mask)
         n = self.n
-        self._alloc(max(self.X.shape[1] + 256, int(1.25 * self.X.shape[1])))
+        # grow in chunks of 128 rows: every solve runs over the whole buffer, so slack rows cost
+        # time at every step (a growth factor of 1.25 wasted up to 56% of a solve); the copy is O(n^2)
+        self._alloc(self.X.shape[1] + 128)
         self.X[:, :n], self.R[:, :n], self.V[:, :n] = old[0][:, :n], old[1][:, :n], old[2][:, :n]
         self.L[:, :n, :n] = old[3][:, :n, :n]
         self.mask[:, :n] = old[4][:, :n]
@@ -169,7 +183,7 @@ class OnlineGP(nn.Module):
         xs = x.unsqueeze(1)
         kxx = self.kernel(xs, xs).reshape(s)
         last = getattr(self, "_last", None)
-        if n > 0 and last is not None and last[2] == n and torch.equal(last[0], xs):
+        if n > 0 and last is not None and last[2] == n and _same_input(last[0], xs, last[3]):
             l = last[1]  # the solve done by predict() at this very input
         elif n > 0:
             k = self.kernel(self.X[:, :n], xs).squeeze(-1) * self.mask[:, :n]
@@ -178,9 +192,12 @@ class OnlineGP(nn.Module):
             l = x.new_zeros(s, 0)
         d2 = kxx + self.noise_var - (l * l).sum(-1)
         floor = 1e-10 * (kxx + self.noise_var)
-        if bool((d2[valid] < floor[valid]).any()):
-            JITTER.record(float((floor - d2).clamp_min(0).max()))
-            warnings.warn("OnlineGP.append: new point nearly dependent on the data; diagonal clamped")
+        if self.device_.type == "cpu":  # on CUDA no host round-trip: clamp silently (counted on device)
+            if bool((d2[valid] < floor[valid]).any()):
+                JITTER.record(float((floor - d2).clamp_min(0).max()))
+                warnings.warn("OnlineGP.append: new point nearly dependent on the data; diagonal clamped")
+        else:
+            self.clamped = self.clamped + ((d2 < floor) & valid).sum()
         d = torch.where(valid, d2.clamp_min(floor).sqrt(), torch.ones_like(d2))
         l = l * valid.unsqueeze(-1)
         r = torch.where(valid.unsqueeze(-1), y.to(self.X) - self.prior_mean(xs).squeeze(1), torch.zeros_like(y, dtype=self.X.dtype))
@@ -290,7 +307,9 @@ class OnlineGP(nn.Module):
             kax = (ksT.unsqueeze(-1) * alpha.unsqueeze(1)).transpose(-1, -2) @ X.unsqueeze(1)
             jac = jac - (ka.unsqueeze(-1) * x.unsqueeze(-2) - kax) / ls2
         if variance and nq == 1:
-            self._last = (x.clone(), w[..., 0].clone(), n)
+            # keep the input itself (not a copy): its storage cannot be reused while referenced,
+            # so pointer + version identify it without a device-to-host comparison
+            self._last = (x, w[..., 0].clone(), n, x._version)
         return mean, var, jac
 
     # hyperparameter fitting ----------------------------------------------------------------
@@ -353,6 +372,9 @@ class GPMotionModel(MotionModel):
         jacobian: ``closed_form`` or ``autograd``.
         fit_every: refit hyperparameters by marginal likelihood after this many training
             episodes (0 = never, the paper's fixed hyperparameters).
+        variant: ``exact`` (:class:`OnlineGP`) or a scalable variant of
+            :mod:`dslearn.models.sparse`: ``window`` (option ``window``), ``sgpr`` (``inducing``),
+            ``ssgp`` (``features``, ``seed``); options are passed as keywords.
     """
 
     learnable = True
@@ -373,6 +395,8 @@ class GPMotionModel(MotionModel):
         capacity: int = 256,
         dtype: torch.dtype = torch.float64,
         device: str | torch.device = "cpu",
+        variant: str = "exact",
+        **variant_options,
     ):
         super().__init__()
         check_choice("model.noise", noise, NOISE_MODES)
@@ -382,7 +406,18 @@ class GPMotionModel(MotionModel):
         self.state_dim = int(state_dim)
         self.noise_mode, self.jacobian_mode = noise, jacobian
         self.fit_every, self.fit_iters, self.fit_lr = int(fit_every), int(fit_iters), float(fit_lr)
-        self.gp = OnlineGP(num_nodes, state_dim, state_dim, outputscale, lengthscale, noise_std, mean, capacity, dtype, device)
+        self.variant = variant
+        if variant == "exact" and not variant_options:
+            self.gp = OnlineGP(num_nodes, state_dim, state_dim, outputscale, lengthscale, noise_std, mean, capacity, dtype, device)
+        else:  # scalable variants (dslearn.models.sparse): window | sgpr | ssgp
+            from .sparse import make_online_gp
+
+            if fit_every and variant != "exact":
+                raise ConfigError(f"model.fit_every={fit_every}: hyperparameter fitting is only available for model.variant=exact")
+            self.gp = make_online_gp(
+                variant, num_nodes, state_dim, state_dim, outputscale=outputscale, lengthscale=lengthscale,
+                noise_std=noise_std, mean=mean, dtype=dtype, device=device, capacity=capacity, **variant_options,
+            )
 
     @property
     def num_nodes(self) -> int:
@@ -422,7 +457,9 @@ class GPMotionModel(MotionModel):
         xf = self._flat(x).detach().requires_grad_(True)
         with torch.enable_grad():
             mean = gp.prior_mean(xf)
-            if n > 0:
+            if hasattr(gp, "differentiable_mean"):  # the scalable variants
+                mean = gp.differentiable_mean(xf)
+            elif n > 0:
                 ks = gp.covar_module(gp.X[:, :n], xf).to_dense() * gp.mask[:, :n].unsqueeze(-1)
                 mean = mean + torch.einsum("snk,sno->sko", ks, gp.alpha)
             rows = [torch.autograd.grad(mean[..., o].sum(), xf, retain_graph=True)[0] for o in range(self.state_dim)]
@@ -436,6 +473,8 @@ class GPMotionModel(MotionModel):
         return self
 
     def save(self, path) -> None:
+        if type(self.gp) is not OnlineGP:
+            raise NotImplementedError(f"save is implemented for model.variant=exact only (this is {self.variant})")
         n = self.gp.n
         torch.save(
             {

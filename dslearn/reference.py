@@ -1,0 +1,285 @@
+r"""A straightforward reference implementation of the Yu et al. protocol, for benchmarks and tests.
+
+Same mathematics as :mod:`dslearn.tracker` / :mod:`dslearn.studies.yu`, written the way one
+would write it first — and kept deliberately that way, as the baseline the fast path is
+timed and tested against:
+
+* Python loops over episodes (``B = 1`` at a time), sensor nodes, targets, consensus rounds
+  and neighbours; every matrix is a single ``(Dx, Dx)`` matrix; inverses by ``torch.linalg.inv``.
+* The GP motion model of each node is a GPyTorch ``ExactGP`` with GPyTorch defaults
+  (``ZeroMean``, ``ScaleKernel(RBFKernel)``, ``GaussianLikelihood``; one batch entry per output,
+  sharing the hyperparameter values), rebuilt from its data set whenever the data set changed,
+  i.e. refactorised from scratch at every online-learning step; the Jacobian of the posterior
+  mean by autograd (``torch.autograd.functional.jacobian``).
+* LIN / SFM use the same model classes, called one node and one episode at a time, with the
+  Jacobian by autograd.
+
+Data (scenario, network, episodes, initial beliefs, seeds) and the metric formulas are shared
+with the fast path (they are not the hot path), so the two produce the same numbers up to
+floating-point rounding; ``tests/test_perf_paths.py`` checks that.
+"""
+
+from __future__ import annotations
+
+import gpytorch
+import pandas as pd
+import torch
+from torch import Tensor
+
+from .models import GPMotionModel
+from .studies.yu import YuStudy, _resolve_device, _to, DTYPES
+from .tracker import TrackResult, tracking_metrics
+from .types import AGENT_DIM, safe_cholesky, spd_inverse
+
+
+class _ExactGP(gpytorch.models.ExactGP):
+    def __init__(self, x, y, lik, dy):
+        super().__init__(x, y, lik)
+        bs = torch.Size([dy])
+        self.mean_module = gpytorch.means.ZeroMean(batch_shape=bs)
+        self.covar_module = gpytorch.kernels.ScaleKernel(gpytorch.kernels.RBFKernel(batch_shape=bs), batch_shape=bs)
+
+    def forward(self, x):
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+
+class ReferenceGP:
+    """One node's GP motion model: a list of points and a GPyTorch ExactGP rebuilt on change."""
+
+    def __init__(self, dim: int, outputscale: float, lengthscale: float, noise_std: float, mean: str, noise: str, dtype):
+        self.dim, self.sf, self.ls, self.sn, self.mean_type, self.noise_mode = dim, outputscale, lengthscale, noise_std, mean, noise
+        self.dtype = dtype
+        self.xs: list[Tensor] = []
+        self.ys: list[Tensor] = []
+        self.model = None
+
+    def prior(self, x: Tensor) -> Tensor:
+        return x.clone() if self.mean_type == "identity" else torch.zeros_like(x)
+
+    def add(self, x: Tensor, y: Tensor) -> None:
+        if torch.isfinite(x).all() and torch.isfinite(y).all():
+            self.xs.append(x.detach().clone())
+            self.ys.append((y - self.prior(x)).detach().clone())
+            self.model = None  # refactorise from scratch at the next use
+
+    def _build(self):
+        X = torch.stack(self.xs)  # (n, d)
+        Y = torch.stack(self.ys)  # (n, Dy)
+        lik = gpytorch.likelihoods.GaussianLikelihood(batch_shape=torch.Size([self.dim]))
+        m = _ExactGP(X.unsqueeze(0).expand(self.dim, -1, -1), Y.T.contiguous(), lik, self.dim).to(self.dtype)
+        m.covar_module.outputscale = torch.full((self.dim,), self.sf**2)
+        m.covar_module.base_kernel.lengthscale = torch.full((self.dim, 1, 1), self.ls)
+        lik.noise = torch.full((self.dim, 1), self.sn**2)
+        m.eval()
+        lik.eval()
+        self.model = m
+
+    def mean(self, x: Tensor) -> Tensor:
+        if not self.xs:
+            return self.prior(x)
+        if self.model is None:
+            self._build()
+        out = self.model(x.reshape(1, 1, -1).expand(self.dim, 1, -1))
+        return self.prior(x) + out.mean[:, 0]
+
+    def linearize(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(Dx,) -> mean (Dx,), F (Dx, Dx), Q (Dx, Dx)``."""
+        mean = self.mean(x)
+        if self.xs:
+            var = self.model(x.reshape(1, 1, -1).expand(self.dim, 1, -1)).variance[0, 0].detach()
+        else:
+            var = torch.tensor(self.sf**2, dtype=x.dtype)
+        F = torch.autograd.functional.jacobian(self.mean, x)
+        if self.noise_mode == "predictive":
+            var = var + self.sn**2
+        return mean.detach(), F.detach(), var * torch.eye(self.dim, dtype=x.dtype)
+
+
+class _ParametricRef:
+    """LIN / SFM model called one state at a time, Jacobian by autograd."""
+
+    def __init__(self, model, ctx):
+        self.model, self.ctx = model, ctx
+
+    def linearize(self, x: Tensor):
+        f = lambda z: self.model(z.unsqueeze(0), self.ctx)[0]  # noqa: E731
+        return f(x).detach(), torch.autograd.functional.jacobian(f, x).detach(), self.model.noise_cov(x.unsqueeze(0), self.ctx)[0]
+
+    def mean(self, x: Tensor) -> Tensor:
+        return self.model(x.unsqueeze(0), self.ctx)[0]
+
+    def add(self, x, y) -> None:
+        pass
+
+
+class ReferenceYu(YuStudy):
+    """The Yu study through the naive implementation (same config, data and seeds as :class:`YuStudy`)."""
+
+    def run(self, progress: bool = False) -> pd.DataFrame:
+        c = self.cfg
+        if c.get("threads"):
+            torch.set_num_threads(int(c.threads))
+        torch.manual_seed(int(c.seed))
+        scenario, network, model, obs, fusion = self.build()
+        if obs.learnable or c.observation.name != "linear":
+            raise NotImplementedError("the reference implements observation=linear only")
+        if fusion.name not in ("individual", "hybrid", "cm", "ci", "centralized"):
+            raise NotImplementedError(f"the reference implements individual/hybrid/cm/ci/centralized, not {fusion.name}")
+        if getattr(model, "fit_every", 0) or getattr(model, "variant", "exact") != "exact":
+            raise NotImplementedError("the reference implements the exact GP with fixed hyperparameters")
+        dtype, device = DTYPES[c.dtype], _resolve_device(c.device)
+        ctx = scenario.ctx()
+        seed = int(c.seed)
+        test = scenario.sample(c.data.test_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 1))
+        train = scenario.sample(c.data.train_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 2))
+        test, train = _to(test, dtype, device), _to(train, dtype, device)
+        S = network.num_nodes
+        if isinstance(model, GPMotionModel):
+            mc = c.model
+            nodes = [ReferenceGP(scenario.state_dim, mc.outputscale, mc.lengthscale, mc.noise_std, mc.mean, mc.noise, dtype) for _ in range(S)]
+        else:
+            nodes = [_ParametricRef(model, ctx)] * S
+        self.ref_nodes = nodes
+        from .tracker import initial_belief
+
+        centre = torch.tensor([(scenario.area[0] + scenario.area[1]) / 2, (scenario.area[2] + scenario.area[3]) / 2], dtype=dtype)
+        pooled = fusion.name == "centralized"
+        gate = c.filter.get("learn_gate_std")
+        W = fusion.weights.to(dtype)
+        sig2 = float(obs.noise_std) ** 2
+        learnable = model.learnable
+        checkpoints = self.checkpoints() if learnable else [int(c.data.train_episodes)]
+        frames, seen = [], 0
+        for k in checkpoints:
+            while learnable and seen < k:
+                ep = train.select(slice(seen, seen + 1))
+                m0, o0 = initial_belief(ep, network, ctx.dt, centre, c.filter.prior_pos_std, c.filter.prior_vel_std, pooled)
+                self._track_one(ep, 0, nodes, fusion, W, sig2, m0[:, 0], o0[:, 0], learn=True, gate=gate)
+                seen += 1
+            # evaluation: one test episode at a time
+            m0, o0 = initial_belief(test, network, ctx.dt, centre, c.filter.prior_pos_std, c.filter.prior_vel_std, pooled)
+            means, infos = [], []
+            for b in range(len(test)):
+                mb, ob = self._track_one(test, b, nodes, fusion, W, sig2, m0[:, b], o0[:, b], learn=False, gate=None)
+                means.append(mb)
+                infos.append(ob)
+            res = TrackResult(torch.stack(means, 1), torch.stack(infos, 1))
+            metrics = tracking_metrics(res, test.states)
+            metrics["pred_err"] = self._prediction_error(nodes, test.states, model.learnable, S)
+            frames.append(self._frame(metrics, network, fusion, k))
+        return pd.concat(frames, ignore_index=True)
+
+    # ------------------------------------------------------------------------------------
+    def _track_one(self, ep, b, nodes, fusion, W, sig2, y0, o0, learn, gate):
+        """One episode ``b``; ``y0 (S, Dx)``, ``o0 (S, Dx, Dx)``. Returns ``(S, K+1, Dx)``, ``(S, K+1, Dx, Dx)``."""
+        S, K = len(nodes), ep.states.shape[1] - 1
+        dx = y0.shape[-1]
+        A = dx // AGENT_DIM
+        y = [y0[i].clone() for i in range(S)]
+        om = [o0[i].clone() for i in range(S)]
+        hist_y, hist_o = [torch.stack(y)], [torch.stack(om)]
+        C = torch.zeros(2, AGENT_DIM, dtype=y0.dtype)
+        C[0, 0] = C[1, 1] = 1.0
+        Rinv = torch.eye(2, dtype=y0.dtype) / sig2
+        for t in range(1, K + 1):
+            q_pred, o_pred, dq, do = [], [], [], []
+            for i in range(S):
+                mean, F, Q = nodes[i].linearize(y[i])
+                P = spd_inverse(om[i])  # inverse through Cholesky, jitter as in the fast path
+                Pp = F @ P @ F.T + Q
+                Pp = 0.5 * (Pp + Pp.T)
+                Op = spd_inverse(Pp)
+                o_pred.append(Op)
+                q_pred.append(Op @ mean)
+                dqi = torch.zeros(dx, dtype=y0.dtype)
+                doi = torch.zeros(dx, dx, dtype=y0.dtype)
+                for j in range(A):
+                    if bool(ep.visible[i, b, t, j]):
+                        sl = slice(j * AGENT_DIM, (j + 1) * AGENT_DIM)
+                        dqi[sl] += C.T @ Rinv @ ep.meas[i, b, t, j]
+                        doi[sl, sl] += C.T @ Rinv @ C
+                dq.append(dqi)
+                do.append(doi)
+            q_new, o_new = self._fuse(fusion, W, q_pred, o_pred, dq, do)
+            y_new = [torch.cholesky_solve(q_new[i].unsqueeze(-1), safe_cholesky(o_new[i])).squeeze(-1) for i in range(S)]
+            if learn:
+                for i in range(S):
+                    if gate is None or self._informed(hist_o[-1][i], gate):
+                        nodes[i].add(y[i], y_new[i])
+            y, om = y_new, o_new
+            hist_y.append(torch.stack(y))
+            hist_o.append(torch.stack(om))
+        return torch.stack(hist_y, 1), torch.stack(hist_o, 1)
+
+    @staticmethod
+    def _informed(o: Tensor, gate: float) -> bool:
+        var = spd_inverse(o).diagonal()
+        for j in range(o.shape[-1] // AGENT_DIM):
+            if var[j * AGENT_DIM] > gate**2 or var[j * AGENT_DIM + 1] > gate**2:
+                return False
+        return True
+
+    @staticmethod
+    def _rounds(W, xs, L):
+        S = len(xs)
+        for _ in range(L):
+            xs = [sum(W[i, j] * xs[j] for j in range(S) if W[i, j] != 0) for i in range(S)]
+        return xs
+
+    def _fuse(self, fusion, W, q_pred, o_pred, dq, do):
+        S, L, w = len(q_pred), fusion.iterations, fusion.omega
+        sym = lambda m: 0.5 * (m + m.T)  # noqa: E731
+        if fusion.name == "individual":
+            return [q_pred[i] + dq[i] for i in range(S)], [sym(o_pred[i] + do[i]) for i in range(S)]
+        if fusion.name == "centralized":
+            sq, so = sum(dq), sum(do)
+            return [q_pred[i] + sq for i in range(S)], [sym(o_pred[i] + so) for i in range(S)]
+        if fusion.name == "ci":
+            q = self._rounds(W, [q_pred[i] + dq[i] for i in range(S)], L)
+            o = self._rounds(W, [o_pred[i] + do[i] for i in range(S)], L)
+            return q, [sym(m) for m in o]
+        dqL, doL = self._rounds(W, dq, L), self._rounds(W, do, L)
+        if fusion.name == "cm":
+            return [q_pred[i] + w * dqL[i] for i in range(S)], [sym(o_pred[i] + w * doL[i]) for i in range(S)]
+        qL, oL = self._rounds(W, q_pred, L), self._rounds(W, o_pred, L)  # hybrid
+        return [qL[i] + w * dqL[i] for i in range(S)], [sym(oL[i] + w * doL[i]) for i in range(S)]
+
+    @staticmethod
+    @torch.no_grad()
+    def _prediction_error(nodes, truth, per_node, S):
+        B, K = truth.shape[0], truth.shape[1] - 1
+        out = torch.zeros(S, B, dtype=truth.dtype)
+        for i in range(S if per_node else 1):
+            for b in range(B):
+                x, err = truth[b, 0], 0.0
+                for t in range(1, K + 1):
+                    x = nodes[i].mean(x).detach()
+                    d = (x - truth[b, t]).reshape(-1, AGENT_DIM)[:, :2].norm(dim=-1)
+                    err = err + d.mean()
+                out[i, b] = err / K
+        if not per_node:
+            out[:] = out[0]
+        return out
+
+    def _frame(self, metrics, network, fusion, seen):
+        c = self.cfg
+        rows = []
+        for name, val in metrics.items():
+            s, b = val.shape
+            rows.append(pd.DataFrame({
+                "node": [network.names[i] for i in range(s) for _ in range(b)],
+                "node_kind": ["sensor" if network.is_sensor[i] else "comm" for i in range(s) for _ in range(b)],
+                "episode": list(range(b)) * s,
+                "metric": name,
+                "value": val.detach().cpu().double().reshape(-1).numpy(),
+            }))
+        df = pd.concat(rows, ignore_index=True)
+        df.insert(0, "model", c.model.name)
+        df.insert(1, "consensus", fusion.name)
+        df.insert(2, "train_seen", int(seen))
+        return df
+
+
+def run_reference(cfg) -> pd.DataFrame:
+    """The reference implementation of :func:`dslearn.studies.yu.run` (same rows' values)."""
+    return ReferenceYu.from_config(cfg).run()

@@ -1,0 +1,101 @@
+"""Fast paths vs the straightforward reference (dslearn.reference) on the same seeds."""
+
+import numpy as np
+import pytest
+import torch
+
+from dslearn.models import GPMotionModel, OnlineGP
+from dslearn.types import StepContext
+
+D = torch.float64
+CTX = StepContext(dt=0.25)
+
+
+def _opts(model, consensus, train, test, **kw):
+    from dslearn.studies.yu import YuStudy
+
+    return YuStudy.from_options(model=model, consensus=consensus, train_episodes=train, test_episodes=test, **kw)
+
+
+@pytest.mark.parametrize("model,consensus,train", [("gp_increment", "hybrid", 1), ("gp", "individual", 1), ("lin", "hybrid", 0)])
+def test_fast_study_equals_reference(model, consensus, train):
+    """Batched tracker + incremental GP == per-node loops + GPyTorch ExactGP refit every step
+    (6 nodes: 4 sensors + 2 relays, to keep the reference quick)."""
+    from dslearn.reference import ReferenceYu
+
+    kw = {"network.num_comm": 2, "network.comm_radius": 6.0}
+    fast = _opts(model, consensus, train, 1, **kw).run()
+    ref = ReferenceYu.from_config(_opts(model, consensus, train, 1, **kw).cfg).run()
+    assert len(fast) == len(ref)
+    for col in ("model", "consensus", "node", "episode", "metric"):
+        assert (fast[col].to_numpy() == ref[col].to_numpy()).all()
+    a, b = fast["value"].to_numpy(), ref["value"].to_numpy()
+    np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-9)
+
+
+def test_append_equals_refit_through_buffer_growth():
+    g = torch.Generator().manual_seed(0)
+    gp = OnlineGP(3, 4, 4, outputscale=1.1, lengthscale=1.4, noise_std=0.3, capacity=8)
+    X = 1.5 * torch.randn(300, 3, 4, generator=g, dtype=D)
+    for i in range(300):  # grows 8 -> 136 -> 264 -> 392 rows
+        gp.predict(X[i].unsqueeze(1))  # the solve reused by append
+        gp.append(X[i], torch.sin(X[i]), torch.tensor([True, i % 3 != 0, True]))
+    assert gp.L.shape[-1] == 392
+    alpha, L = gp.alpha.clone(), gp.L[:, : gp.n, : gp.n].clone()
+    xq = torch.randn(3, 4, 4, generator=g, dtype=D)
+    m1, v1, j1 = gp.predict(xq)
+    gp.refactorize()
+    assert torch.allclose(gp.L[:, : gp.n, : gp.n], L, atol=1e-10)
+    assert torch.allclose(gp.alpha, alpha, atol=1e-9)
+    m2, v2, j2 = gp.predict(xq)
+    assert torch.allclose(m1, m2, atol=1e-9) and torch.allclose(v1, v2, atol=1e-9) and torch.allclose(j1, j2, atol=1e-9)
+
+
+def test_reference_gp_equals_online_gp_and_autograd_jacobian():
+    from dslearn.reference import ReferenceGP
+
+    g = torch.Generator().manual_seed(1)
+    model = GPMotionModel(8, num_nodes=1, mean="identity")
+    ref = ReferenceGP(8, 1.0, 2.0, 0.5, "identity", "latent", D)
+    X = torch.randn(40, 1, 8, generator=g, dtype=D)
+    for i in range(40):
+        model.add_data(X[i], X[i] + 0.1 * torch.tanh(X[i]))
+        ref.add(X[i, 0], X[i, 0] + 0.1 * torch.tanh(X[i, 0]))
+    x = torch.randn(8, generator=g, dtype=D)
+    m, F, Q = model.linearize(x.reshape(1, 1, 8), CTX)
+    mr, Fr, Qr = ref.linearize(x)
+    assert torch.allclose(m[0, 0], mr, atol=1e-9)
+    assert torch.allclose(F[0, 0], Fr, atol=1e-9)
+    assert torch.allclose(Q[0, 0], Qr, atol=1e-9)
+
+
+def test_float32_close_to_float64():
+    """float32 is selectable; its accuracy cost on the tiny study is small (stated tolerance)."""
+    a = _opts("gp_increment", "hybrid", 2, 2).run()
+    b = _opts("gp_increment", "hybrid", 2, 2, dtype="float32").run()
+    for metric, tol in (("track_err", 1e-3), ("pred_err", 1e-3)):
+        x = a[a.metric == metric]["value"].to_numpy()
+        y = b[b.metric == metric]["value"].to_numpy()
+        assert np.abs(x - y).max() < tol, (metric, np.abs(x - y).max())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_equals_cpu():
+    a = _opts("gp_increment", "hybrid", 2, 2).run()
+    b = _opts("gp_increment", "hybrid", 2, 2, device="cuda").run()
+    np.testing.assert_allclose(a["value"].to_numpy(), b["value"].to_numpy(), rtol=1e-7, atol=1e-8)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_gp_step_has_no_host_sync():
+    gp = OnlineGP(4, 8, 8, device="cuda")
+    x = torch.randn(4, 8, device="cuda", dtype=D)
+    gp.append(x, x)
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(3):
+            x = torch.randn(4, 8, device="cuda", dtype=D)
+            gp.predict(x.unsqueeze(1))
+            gp.append(x, torch.sin(x))
+    finally:
+        torch.cuda.set_sync_debug_mode("default")

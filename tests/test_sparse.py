@@ -1,0 +1,172 @@
+"""Scalable GP variants (dslearn.models.sparse): each against its closed form / the exact GP."""
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from dslearn.errors import ConfigError
+from dslearn.models import GPMotionModel, OnlineGP
+from dslearn.models.sparse import SGPR, SSGP, WindowGP, chol_update
+from dslearn.types import StepContext
+
+D = torch.float64
+CTX = StepContext(dt=0.25)
+HYP = dict(outputscale=1.3, lengthscale=1.7, noise_std=0.4)
+
+
+def _k(a, b, sf2=1.3**2, ls=1.7):
+    return sf2 * torch.exp(-0.5 * torch.cdist(a, b).pow(2) / ls**2)
+
+
+def _exact(X, Y, xq, noise=0.16):
+    K = _k(X, X) + noise * torch.eye(len(X), dtype=D)
+    ks = _k(X, xq)
+    return ks.T @ torch.linalg.solve(K, Y), 1.3**2 - (ks * torch.linalg.solve(K, ks)).sum(0)
+
+
+def test_chol_update_equals_cholesky():
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(3, 40, 40, generator=g, dtype=D)
+    S = A @ A.mT + 0.5 * torch.eye(40, dtype=D)
+    L = torch.linalg.cholesky(S)
+    v = torch.randn(3, 40, generator=g, dtype=D)
+    v[1] = 0.0  # a zero vector is a no-op
+    L2 = chol_update(L, v)
+    ref = torch.linalg.cholesky(S + v.unsqueeze(-1) * v.unsqueeze(-2))
+    assert torch.allclose(L2, ref, atol=1e-11)
+    assert torch.equal(torch.triu(L2, 1), torch.zeros_like(L2))
+    assert torch.allclose(L2[1], L[1], atol=1e-14)
+
+
+def test_window_gp_equals_exact_gp_on_last_points():
+    g = torch.Generator().manual_seed(1)
+    gp = WindowGP(2, 3, 3, window=15, **HYP)
+    X = torch.randn(40, 2, 3, generator=g, dtype=D)
+    valids = []
+    for i in range(40):
+        valid = torch.tensor([True, i % 7 != 3])
+        valids.append(valid)
+        gp.predict(X[i].unsqueeze(1))  # exercises the solve reuse in append
+        gp.append(X[i], torch.sin(X[i]), valid)
+    assert gp.n == 15 and gp.seen == 40
+    xq = torch.randn(2, 5, 3, generator=g, dtype=D)
+    m, v, _ = gp.predict(xq)
+    for s in range(2):
+        keep = torch.stack([valids[i][s] for i in range(25, 40)])
+        Xs = X[25:40, s][keep]
+        em, ev = _exact(Xs, torch.sin(Xs), xq[s])
+        assert torch.allclose(m[s], em, atol=1e-9)
+        assert torch.allclose(v[s], ev, atol=1e-9)
+    # the downdated factor and cached alpha equal a refactorisation
+    L, alpha = gp.L[:, : gp.n, : gp.n].clone(), gp.alpha.clone()
+    gp.refactorize()
+    assert torch.allclose(gp.L[:, : gp.n, : gp.n], L, atol=1e-10)
+    assert torch.allclose(gp.alpha, alpha, atol=1e-9)
+
+
+def test_sgpr_exact_while_filling_then_dtc_closed_form():
+    g = torch.Generator().manual_seed(2)
+    M, n = 12, 30
+    sg = SGPR(1, 2, 2, inducing=M, jitter=0.0, **HYP)
+    ex = OnlineGP(1, 2, 2, **HYP)
+    X = 2 * torch.randn(n, 1, 2, generator=g, dtype=D)
+    xq = torch.randn(1, 4, 2, generator=g, dtype=D)
+    for i in range(n):
+        sg.append(X[i], torch.cos(X[i]))
+        if i < M:
+            ex.append(X[i], torch.cos(X[i]))
+        if i == M - 1:  # Z = X: DTC is the exact GP
+            ms, vs, _ = sg.predict(xq)
+            me, ve, _ = ex.predict(xq)
+            assert torch.allclose(ms, me, atol=1e-7) and torch.allclose(vs, ve, atol=1e-7)
+    Z, Xa = X[:M, 0], X[:, 0]
+    Kuu, Kuf, ku = _k(Z, Z), _k(Z, Xa), _k(Z, xq[0])
+    Sig = Kuu + Kuf @ Kuf.T / 0.16
+    mean = ku.T @ torch.linalg.solve(Sig, Kuf @ torch.cos(Xa)) / 0.16
+    var = 1.3**2 - (ku * torch.linalg.solve(Kuu, ku)).sum(0) + (ku * torch.linalg.solve(Sig, ku)).sum(0)
+    ms, vs, _ = sg.predict(xq)
+    assert torch.allclose(ms[0], mean, atol=1e-8)
+    assert torch.allclose(vs[0], var, atol=1e-7)
+
+
+def test_ssgp_equals_bayesian_linear_regression_and_approaches_kernel():
+    g = torch.Generator().manual_seed(3)
+    ss = SSGP(2, 3, 3, features=64, seed=5, **HYP)
+    X = torch.randn(25, 2, 3, generator=g, dtype=D)
+    for i in range(25):
+        ss.append(X[i], torch.tanh(X[i]), torch.tensor([True, i % 4 != 0]))
+    xq = torch.randn(2, 6, 3, generator=g, dtype=D)
+    m, v, _ = ss.predict(xq)
+    for s in range(2):
+        keep = torch.tensor([True if s == 0 else i % 4 != 0 for i in range(25)])
+        F = ss.phi(X[:, s][keep].unsqueeze(0).expand(2, -1, -1))[s]
+        Fq = ss.phi(xq)[s]
+        A = torch.eye(64, dtype=D) + F.T @ F / 0.16
+        mu = torch.linalg.solve(A, F.T @ torch.tanh(X[:, s][keep])) / 0.16
+        assert torch.allclose(m[s], Fq @ mu, atol=1e-10)
+        assert torch.allclose(v[s], (Fq * torch.linalg.solve(A, Fq.T).T).sum(-1), atol=1e-10)
+    # many features: phi phi^T -> the RBF kernel
+    big = SSGP(1, 3, 3, features=2, seed=0, **HYP)  # then 20,000 features for phi only (no D x D state)
+    big.features = 20000
+    big.omega = torch.randn(10000, 3, generator=torch.Generator().manual_seed(0), dtype=D)
+    a = torch.randn(1, 10, 3, generator=g, dtype=D)
+    Fa = big.phi(a)[0]
+    assert (Fa @ Fa.T - _k(a[0], a[0])).abs().max() < 0.06
+
+
+@pytest.mark.parametrize("variant,opts", [("window", dict(window=12)), ("sgpr", dict(inducing=10)), ("ssgp", dict(features=40))])
+def test_sparse_jacobian_closed_form_equals_autograd(variant, opts):
+    model = GPMotionModel(4, num_nodes=2, mean="identity", variant=variant, **HYP, **opts)
+    g = torch.Generator().manual_seed(4)
+    X = torch.randn(30, 2, 4, generator=g, dtype=D)
+    for i in range(30):
+        model.add_data(X[i], torch.tanh(X[i]))
+    x = torch.randn(2, 3, 4, generator=g, dtype=D)
+    mean, jac, q = model.linearize(x, CTX)
+    assert torch.allclose(jac, model._autograd_jacobian(x), atol=1e-10)
+    eps = 1e-6
+    fd = torch.stack([(model(x + eps * e, CTX) - model(x - eps * e, CTX)) / (2 * eps) for e in torch.eye(4, dtype=D)], -1)
+    assert torch.allclose(jac, fd, atol=1e-7)
+    assert (q.diagonal(dim1=-2, dim2=-1) >= 0).all() and torch.allclose(mean, model(x, CTX))
+
+
+def test_variant_config_errors():
+    with pytest.raises(ConfigError, match="model.variant"):
+        GPMotionModel(4, 2, variant="nystrom")
+    with pytest.raises(ConfigError, match="model.features"):
+        GPMotionModel(4, 2, variant="ssgp", features=7)
+    with pytest.raises(ConfigError, match="model.window"):
+        GPMotionModel(4, 2, variant="window", window=1)
+    with pytest.raises(ConfigError, match="model.fit_every"):
+        GPMotionModel(4, 2, variant="sgpr", fit_every=2)
+
+
+def _tiny_cfg(model_overrides):
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "conf"
+    cfg = OmegaConf.create({
+        "study": "t", "seed": 0, "device": "cpu", "dtype": "float64", "progress": False, "threads": 1,
+        "scenario": OmegaConf.load(root / "scenario/yu_two_agents.yaml"),
+        "network": OmegaConf.load(root / "network/yu.yaml"),
+        "observation": OmegaConf.load(root / "observation/linear.yaml"),
+        "consensus": OmegaConf.load(root / "consensus/hybrid.yaml"),
+        "filter": OmegaConf.load(root / "filter/default.yaml"),
+        "data": {"train_episodes": 4, "test_episodes": 3, "eval_at": None, "min_train_episodes": 0},
+        "model": {**OmegaConf.to_container(OmegaConf.load(root / "model/gp.yaml")), "mean": "identity", "name": "gp_x", **model_overrides},
+    })
+    cfg.network.area = list(cfg.scenario.area)
+    return cfg
+
+
+def test_study_runs_each_variant_and_large_window_equals_exact():
+    from dslearn.studies.yu import YuStudy
+
+    ref = YuStudy.from_config(_tiny_cfg({})).run()
+    win = YuStudy.from_config(_tiny_cfg({"variant": "window", "window": 1000})).run()
+    assert (ref["value"] - win["value"]).abs().max() < 1e-9
+    for ov in ({"variant": "sgpr", "inducing": 16}, {"variant": "ssgp", "features": 50}, {"variant": "window", "window": 20}):
+        df = YuStudy.from_config(_tiny_cfg(ov)).run()
+        assert df["value"].notna().all() and len(df) == len(ref)
+        te = df[df.metric == "track_err"]["value"].mean()
+        assert te < 2 * ref[ref.metric == "track_err"]["value"].mean() + 0.05
