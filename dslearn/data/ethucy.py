@@ -1,0 +1,308 @@
+r"""ETH/UCY pedestrian trajectories: strict loader, scenes, leave-one-scene-out folds, windows.
+
+The data and its quirks are described in ``../shared/data/eth_ucy/README.md`` (read it):
+plain-text files, one observation per line, 4 tab-separated fields ``frame_id ped_id x y``
+(metres), one row per pedestrian every 10 video frames.
+
+Scenes (:data:`SCENES`, the five benchmark scenes of Social LSTM / Social GAN):
+
+==========  ==========================================
+scene       standard file(s)
+==========  ==========================================
+``eth``     ``biwi_eth.txt``
+``hotel``   ``biwi_hotel.txt``
+``zara1``   ``crowds_zara01.txt``
+``zara2``   ``crowds_zara02.txt``
+``univ``    ``students001.txt`` + ``students003.txt``
+==========  ==========================================
+
+``crowds_zara03.txt`` and ``uni_examples.txt`` are never test scenes; they are training data
+in every fold and can be loaded as the scenes ``zara3`` and ``uni_examples``
+(:data:`ALL_SCENES`). :func:`fold_scenes` gives the standard leave-one-scene-out split.
+
+Time step (:func:`scene_dt`): one row step (10 frames) is 0.4 s under the ``benchmark``
+convention for every file (what published ADE/FDE numbers use). Under the ``physical``
+convention ``biwi_eth.txt`` is 10/15 s ≈ 0.667 s (its video is ~15 fps, see the README's
+time-step note) and every other file 0.4 s.
+
+Python use::
+
+    from dslearn.data import load_scene
+    sc = load_scene("zara1")                 # Scene(name, dt, convention, df)
+    tracks = sc.tracks()                     # ped -> (T_i, 3) [step, x, y]
+    pos, meta = windows(sc, length=20)       # (N, 20, A_max, 2), NaN-padded
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from torch import Tensor
+
+from ..errors import ConfigError, DataFormatError, check_choice
+
+#: benchmark scene -> standard files (the five leave-one-scene-out test scenes)
+SCENES: dict[str, tuple[str, ...]] = {
+    "eth": ("biwi_eth.txt",),
+    "hotel": ("biwi_hotel.txt",),
+    "zara1": ("crowds_zara01.txt",),
+    "zara2": ("crowds_zara02.txt",),
+    "univ": ("students001.txt", "students003.txt"),
+}
+#: training-only files, loadable as scenes of their own
+TRAIN_ONLY: dict[str, tuple[str, ...]] = {
+    "zara3": ("crowds_zara03.txt",),
+    "uni_examples": ("uni_examples.txt",),
+}
+ALL_SCENES: dict[str, tuple[str, ...]] = {**SCENES, **TRAIN_ONLY}
+CONVENTIONS = ("benchmark", "physical")
+FRAMES_PER_STEP = 10
+#: offset that makes pedestrian ids unique across the files of one scene
+PED_OFFSET = 100_000
+ENV_ROOT = "DSLEARN_ETHUCY_ROOT"
+#: benchmark train/validation split in time (README section 3): rows with frame_id >= this
+#: value are the validation part of a training file (the earlier ~80 % is the train part)
+VAL_FIRST_FRAME: dict[str, int] = {
+    "biwi_eth.txt": 10240,
+    "biwi_hotel.txt": 14400,
+    "crowds_zara01.txt": 7110,
+    "crowds_zara02.txt": 8420,
+    "crowds_zara03.txt": 6030,
+    "students001.txt": 3550,
+    "students003.txt": 4320,
+    "uni_examples.txt": 5940,
+}
+SPLIT_PARTS = ("all", "train", "val")
+
+
+def default_root() -> Path:
+    """The data folder: ``$DSLEARN_ETHUCY_ROOT`` if set, else ``<repo>/../shared/data/eth_ucy``.
+
+    Raises:
+        ConfigError: naming ``data root`` when the folder does not exist.
+    """
+    env = os.environ.get(ENV_ROOT)
+    root = Path(env) if env else Path(__file__).resolve().parents[2].parent / "shared" / "data" / "eth_ucy"
+    if not root.is_dir():
+        raise ConfigError(
+            f"data root {str(root)!r} does not exist; set {ENV_ROOT} to the eth_ucy folder "
+            "(the one holding biwi_eth.txt ...) or pass root=..."
+        )
+    return root
+
+
+def read_trajectories(path: str | Path) -> pd.DataFrame:
+    """Read one standard ``frame ped x y`` file strictly.
+
+    Every line must have exactly 4 whitespace-separated finite numbers; ``frame`` and ``ped``
+    must be integral (``780`` and ``780.0`` are both accepted); frames must not decrease from
+    one line to the next; no ``(frame, ped)`` pair may repeat. Nothing is returned unless the
+    whole file is valid.
+
+    Args:
+        path: the file.
+    Returns:
+        DataFrame with columns ``frame`` (int64), ``ped`` (int64), ``x``, ``y`` (float64, m),
+        sorted by ``(frame, ped)``.
+    Raises:
+        DataFormatError: ``"<file>:<line>: <what is wrong>"`` (1-based line numbers); an
+            empty file is reported at line 1.
+        FileNotFoundError: the file does not exist.
+    """
+    path = Path(path)
+    with open(path, "r", encoding="utf-8", newline=None) as f:
+        lines = f.read().splitlines()
+    if not lines:
+        raise DataFormatError(f"{path}:1: empty file (expected lines 'frame ped x y')")
+    n = len(lines)
+    vals = np.empty((n, 4), dtype=np.float64)
+    for i, line in enumerate(lines):
+        parts = line.split()
+        if len(parts) != 4:
+            raise DataFormatError(f"{path}:{i + 1}: expected 4 fields 'frame ped x y', got {len(parts)}: {line!r}")
+        try:
+            row = [float(p) for p in parts]
+        except ValueError:
+            raise DataFormatError(f"{path}:{i + 1}: non-numeric field in {line!r}") from None
+        if not all(math.isfinite(v) for v in row):
+            raise DataFormatError(f"{path}:{i + 1}: NaN or infinite value in {line!r}")
+        vals[i] = row
+    for col, name in ((0, "frame"), (1, "ped_id")):
+        bad = np.nonzero(vals[:, col] != np.round(vals[:, col]))[0]
+        if bad.size:
+            i = int(bad[0])
+            raise DataFormatError(f"{path}:{i + 1}: {name} {float(vals[i, col])!r} is not an integer")
+    frame = vals[:, 0].astype(np.int64)
+    ped = vals[:, 1].astype(np.int64)
+    dec = np.nonzero(np.diff(frame) < 0)[0]
+    if dec.size:
+        i = int(dec[0]) + 1
+        raise DataFormatError(
+            f"{path}:{i + 1}: frame {frame[i]} after frame {frame[i - 1]} (frames must not decrease)"
+        )
+    df = pd.DataFrame({"frame": frame, "ped": ped, "x": vals[:, 2], "y": vals[:, 3], "line": np.arange(1, n + 1)})
+    dup = df.duplicated(["frame", "ped"], keep="first")
+    if dup.any():
+        j = int(np.nonzero(dup.to_numpy())[0][0])
+        first = int(df[(df.frame == frame[j]) & (df.ped == ped[j])].line.iloc[0])
+        raise DataFormatError(
+            f"{path}:{j + 1}: duplicate (frame, ped) = ({frame[j]}, {ped[j]}), first seen at line {first}"
+        )
+    df = df.sort_values(["frame", "ped"], kind="stable").drop(columns="line").reset_index(drop=True)
+    return df
+
+
+def scene_dt(file_name: str, convention: str = "benchmark") -> float:
+    """Seconds per row step (10 frames) of a standard file.
+
+    ``benchmark``: 0.4 s for every file (published ADE/FDE numbers). ``physical``: 10/15 s
+    for ``biwi_eth.txt`` (~15 fps video), 0.4 s otherwise.
+    """
+    check_choice("convention", convention, CONVENTIONS)
+    if convention == "physical" and Path(file_name).name == "biwi_eth.txt":
+        return 10.0 / 15.0
+    return 0.4
+
+
+@dataclass
+class Scene:
+    """One scene (one or more files) as a tidy table.
+
+    Attributes:
+        name: scene name (a key of :data:`ALL_SCENES`).
+        dt: seconds per step under ``convention``.
+        convention: ``benchmark`` or ``physical``.
+        df: columns ``file`` (str), ``frame`` (int64), ``ped`` (int64, unique across the
+            scene's files: ``file_index * 100000 + ped_id``), ``step`` (int64,
+            ``frame // 10`` minus the file's first ``frame // 10``), ``t`` (``step * dt``, s),
+            ``x``, ``y`` (m); sorted by (file, frame, ped).
+    """
+
+    name: str
+    dt: float
+    convention: str
+    df: pd.DataFrame
+
+    def tracks(self) -> dict[int, Tensor]:
+        """``ped -> (T_i, 3)`` float64 rows ``[step, x, y]`` at consecutive steps.
+
+        Raises:
+            DataFormatError: a pedestrian's steps have a gap (the standard files have none).
+        """
+        out = {}
+        for ped, g in self.df.groupby("ped", sort=True):
+            steps = g["step"].to_numpy()
+            if steps.size > 1 and not (np.diff(steps) == 1).all():
+                raise DataFormatError(f"scene {self.name}: pedestrian {ped} has a gap in its steps")
+            out[int(ped)] = torch.as_tensor(g[["step", "x", "y"]].to_numpy(dtype=np.float64))
+        return out
+
+
+def load_scene(name: str, root: str | Path | None = None, convention: str = "benchmark") -> Scene:
+    """Load a scene (a key of :data:`ALL_SCENES`) from ``root`` (default :func:`default_root`).
+
+    Raises:
+        ConfigError: unknown scene or convention, missing data root.
+        DataFormatError: a malformed file, or a frame id that is not a multiple of 10.
+    """
+    check_choice("scene", name, tuple(ALL_SCENES))
+    check_choice("convention", convention, CONVENTIONS)
+    root = default_root() if root is None else Path(root)
+    if not root.is_dir():
+        raise ConfigError(f"data root {str(root)!r} does not exist")
+    dts = {scene_dt(f, convention) for f in ALL_SCENES[name]}
+    if len(dts) != 1:  # cannot happen with the standard scenes
+        raise ConfigError(f"scene {name}: files have different time steps {sorted(dts)}")
+    dt = dts.pop()
+    parts = []
+    for k, fname in enumerate(ALL_SCENES[name]):
+        path = root / fname
+        if not path.is_file():
+            raise ConfigError(f"data root {str(root)!r} has no file {fname} (scene {name})")
+        d = read_trajectories(path)
+        off = d["frame"] % FRAMES_PER_STEP != 0
+        if off.any():
+            raise DataFormatError(f"{path}: frame {int(d.frame[off].iloc[0])} is not a multiple of {FRAMES_PER_STEP}")
+        step = d["frame"] // FRAMES_PER_STEP
+        d.insert(0, "file", fname)
+        d["ped"] = d["ped"] + k * PED_OFFSET
+        d["step"] = (step - step.min()).astype(np.int64)
+        d["t"] = d["step"] * dt
+        parts.append(d[["file", "frame", "ped", "step", "t", "x", "y"]])
+    return Scene(name=name, dt=dt, convention=convention, df=pd.concat(parts, ignore_index=True))
+
+
+def split_scene(scene: Scene, part: str) -> Scene:
+    """The benchmark's train or validation part of a scene (split in time per file, see
+    :data:`VAL_FIRST_FRAME`); ``part="all"`` returns the scene itself.
+
+    Files without a known split (fixture files) go wholly to ``train``.
+    """
+    check_choice("part", part, SPLIT_PARTS)
+    if part == "all":
+        return scene
+    first = scene.df["file"].map(lambda f: VAL_FIRST_FRAME.get(f, np.iinfo(np.int64).max))
+    is_val = scene.df["frame"] >= first
+    keep = is_val if part == "val" else ~is_val
+    return Scene(name=f"{scene.name}:{part}", dt=scene.dt, convention=scene.convention, df=scene.df[keep].reset_index(drop=True))
+
+
+def fold_scenes(test_scene: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Leave-one-scene-out fold: ``(test scenes, training scenes)``.
+
+    Training uses every other scene of :data:`ALL_SCENES` (so ``zara3`` and
+    ``uni_examples`` always train), as in the README's protocol table.
+    """
+    check_choice("test scene", test_scene, tuple(SCENES))
+    return (test_scene,), tuple(s for s in ALL_SCENES if s != test_scene)
+
+
+def windows(
+    scene: Scene, length: int = 20, stride: int = 1, min_peds: int = 1
+) -> tuple[Tensor, pd.DataFrame]:
+    """Sliding windows of ``length`` steps with every pedestrian present at all of them.
+
+    As in the Social GAN loader (``skip`` = ``stride``): a pedestrian belongs to a window
+    only if it is present at every step of it; a window is kept if it has at least
+    ``min_peds`` such pedestrians (the benchmark keeps windows with >= 2). Windows never
+    cross files.
+
+    Returns:
+        positions ``(N, length, A_max, 2)`` float64, NaN-padded in the agent dimension
+        (present agents first, in increasing ped id), and a DataFrame with one row per
+        window: ``file``, ``start_step``, ``num_peds``, ``peds`` (tuple of ped ids).
+    """
+    if length < 1 or stride < 1 or min_peds < 1:
+        raise ConfigError(f"windows: length={length}, stride={stride}, min_peds={min_peds} must all be >= 1")
+    blocks, metas = [], []
+    for fname, d in scene.df.groupby("file", sort=False):
+        peds = np.sort(d["ped"].unique())
+        col = np.searchsorted(peds, d["ped"].to_numpy())
+        steps = d["step"].to_numpy()
+        n_steps = int(steps.max()) + 1
+        if n_steps < length:
+            continue
+        grid = np.full((n_steps, peds.size, 2), np.nan)
+        grid[steps, col] = d[["x", "y"]].to_numpy()
+        present = ~np.isnan(grid[..., 0])
+        csum = np.concatenate([np.zeros((1, peds.size), np.int64), np.cumsum(present, 0)], 0)
+        starts = np.arange(0, n_steps - length + 1, stride)
+        full = (csum[starts + length] - csum[starts]) == length  # (W, P)
+        keep = full.sum(1) >= min_peds
+        for s, row in zip(starts[keep], full[keep]):
+            idx = np.nonzero(row)[0]
+            blocks.append(grid[s : s + length, idx])
+            metas.append({"file": fname, "start_step": int(s), "num_peds": int(idx.size), "peds": tuple(int(p) for p in peds[idx])})
+    if not blocks:
+        return torch.empty(0, length, 0, 2, dtype=torch.float64), pd.DataFrame(columns=["file", "start_step", "num_peds", "peds"])
+    a_max = max(b.shape[1] for b in blocks)
+    out = np.full((len(blocks), length, a_max, 2), np.nan)
+    for i, b in enumerate(blocks):
+        out[i, :, : b.shape[1]] = b
+    return torch.as_tensor(out), pd.DataFrame(metas)

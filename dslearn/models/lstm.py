@@ -1,0 +1,445 @@
+r"""LSTM encoder–decoder trajectory predictor and its Social-LSTM variant, as a MotionModel.
+
+Architecture (Yu et al. Section VI-C, after Alahi et al. 2016 [20]): per agent, the 2-D
+input of each observed step goes through an MLP (``Linear(2, embed) + ReLU``) to an
+``embed``-d feature; an encoder LSTM (``hidden``) reads the observed steps; a decoder LSTM
+(``hidden``, initialised with the encoder's state) runs one step per predicted step and a
+``Linear(hidden, 2)`` maps its hidden state to the 2-D output. Trained with Adam and an L2
+(mean squared error) loss on the predicted positions (:func:`train_lstm`).
+
+Inputs and outputs are **displacements**: the input of step ``t`` is ``p_t - p_{t-1}``
+(0 for the first observed step) and the output of each decoder step is the next
+displacement; positions are the last observed position plus the cumulative sum of the
+predicted displacements (standard practice, e.g. Social GAN; it makes the model
+translation-invariant, so it transfers between scenes with different world frames). The
+decoder's input at each step is the embedding of the previous displacement (the last
+observed one first, then its own predictions).
+
+``pooling="social"`` adds the social pooling of Alahi et al. (2016), Eq. 1: around agent
+``i`` a ``grid x grid`` square of side ``neighbourhood`` metres (centred on the agent) is
+divided into cells; the hidden states of the other agents in each cell are summed,
+:math:`H_i(m,n,:) = \sum_{j \ne i} 1_{mn}[p_j - p_i]\, h_j`, flattened, embedded
+(``Linear(grid^2 hidden, embed) + ReLU``) and concatenated with the input embedding
+before every encoder and decoder step (the hidden states are those of the previous step;
+positions are observed ones in the encoder and predicted ones in the decoder).
+
+The hyperparameters (paper defaults) live in ``conf/lstm/default.yaml`` (config group
+``lstm``: ``+lstm=default`` until the root config lists it); the tracking studies
+(helper 3b's real-data studies, e.g. ``dslearn/studies/ethucy_tracking.py``) read ``cfg.lstm``; the forecasting
+study (``dslearn/studies/ethucy_forecast.py``) keeps its own copy under ``task.lstm``.
+
+Agents that are absent (NaN positions) in a window are masked: they are neither pooled
+nor counted in the loss, and their predictions are NaN.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import pandas as pd
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ..errors import ConfigError, check_choice, check_positive
+from ..types import AGENT_DIM, StepContext, agents, joint
+from .base import MotionModel
+
+POOLINGS = ("none", "social")
+CHECKPOINT_FORMAT = "dslearn.lstm/1"
+HPARAMS = ("obs_len", "pred_len", "embed", "hidden", "pooling", "grid", "neighbourhood", "dt")
+
+
+class SocialLSTM(MotionModel):
+    r"""LSTM encoder–decoder (``pooling="none"``) or Social-LSTM (``pooling="social"``).
+
+    As a :class:`MotionModel` on the project state layout (per agent
+    ``[px, py, vx, vy]``, ``Dx = 4A``): the history is rebuilt from the state as
+    ``[p - (obs_len-1) v dt, ..., p - v dt, p]`` (for ``obs_len=2``: ``[p - v dt, p]``),
+    the next position is the first predicted one, and the velocity of the output is the
+    finite difference ``(p^{t+1} - p^t) / dt``. Process noise :math:`Q = \sigma^2 I`.
+
+    Args:
+        num_agents: ``A`` (state layout only; the network is shared by all agents, so a
+            model trained on any number of agents runs on any other).
+        obs_len: observed steps fed to the encoder (paper: 2).
+        pred_len: steps predicted by the decoder (paper: 10).
+        embed: input embedding size (paper: 64).
+        hidden: LSTM hidden size (paper: 64).
+        pooling: ``none`` | ``social``.
+        grid: cells per side of the pooling grid.
+        neighbourhood: side of the pooling square in metres.
+        dt: seconds per step of the data it is trained on.
+        dtype, device: parameters' dtype and device.
+        noise_std: :math:`\sigma` of the process noise reported to filters.
+        seed: if given, the weights are initialised from this seed (global RNG untouched).
+    """
+
+    def __init__(
+        self,
+        num_agents: int,
+        obs_len: int = 2,
+        pred_len: int = 10,
+        embed: int = 64,
+        hidden: int = 64,
+        pooling: str = "none",
+        grid: int = 4,
+        neighbourhood: float = 2.0,
+        dt: float = 0.4,
+        dtype: torch.dtype = torch.float64,
+        device: str | torch.device = "cpu",
+        noise_std: float = 0.1,
+        seed: int | None = None,
+    ):
+        super().__init__()
+        for field, v in (("lstm.obs_len", obs_len), ("lstm.pred_len", pred_len), ("lstm.embed", embed),
+                         ("lstm.hidden", hidden), ("lstm.grid", grid), ("num_agents", num_agents)):
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ConfigError(f"{field}={v!r} must be an integer >= 1")
+        if obs_len < 2:
+            raise ConfigError(f"lstm.obs_len={obs_len} must be >= 2 (one displacement at least)")
+        check_choice("lstm.pooling", pooling, POOLINGS)
+        check_positive("lstm.neighbourhood", neighbourhood)
+        check_positive("lstm.dt", dt)
+        check_positive("lstm.noise_std", noise_std)
+        self.num_agents = int(num_agents)
+        self.state_dim = AGENT_DIM * self.num_agents
+        self.obs_len, self.pred_len = int(obs_len), int(pred_len)
+        self.embed, self.hidden = int(embed), int(hidden)
+        self.pooling, self.grid, self.neighbourhood = pooling, int(grid), float(neighbourhood)
+        self.dt, self.noise_std = float(dt), float(noise_std)
+        with torch.random.fork_rng(devices=[]):
+            if seed is not None:
+                torch.manual_seed(int(seed))
+            self.input_embed = nn.Sequential(nn.Linear(2, embed), nn.ReLU())
+            in_dim = embed
+            if pooling == "social":
+                self.pool_embed = nn.Sequential(nn.Linear(grid * grid * hidden, embed), nn.ReLU())
+                in_dim += embed
+            self.encoder = nn.LSTMCell(in_dim, hidden)
+            self.decoder = nn.LSTMCell(in_dim, hidden)
+            self.output = nn.Linear(hidden, 2)
+        self.to(dtype=dtype, device=device)
+
+    # hyperparameters / checkpoints --------------------------------------------------------
+    def hparams(self) -> dict:
+        """The hyperparameters that define the network (saved with every checkpoint)."""
+        return {k: getattr(self, k) for k in HPARAMS}
+
+    @property
+    def param_dtype(self) -> torch.dtype:
+        return self.output.weight.dtype
+
+    @property
+    def param_device(self) -> torch.device:
+        return self.output.weight.device
+
+    def save(self, path: str | Path, history: pd.DataFrame | None = None) -> None:
+        """Save a checkpoint (see :func:`save_checkpoint`)."""
+        save_checkpoint(self, path, history)
+
+    def load(self, path: str | Path) -> "SocialLSTM":
+        """Load a checkpoint into this model; ConfigError if its hyperparameters differ."""
+        load_checkpoint(path, self)
+        return self
+
+    # network ---------------------------------------------------------------------------
+    def _pool(self, pos: Tensor, h: Tensor, mask: Tensor) -> Tensor:
+        r"""Social pooling tensor, flattened: ``pos (B, A, 2), h (B, A, H), mask (B, A) -> (B, A, G^2 H)``.
+
+        Cell of neighbour ``j`` around ``i``: ``floor((p_j - p_i + N/2) / (N/G))`` per axis;
+        neighbours outside the ``N x N`` square, absent agents and ``j = i`` are left out.
+        """
+        b, a, _ = pos.shape
+        g, nb = self.grid, self.neighbourhood
+        rel = pos.unsqueeze(1) - pos.unsqueeze(2)  # (B, i, j, 2) = p_j - p_i
+        cell = torch.floor((rel.detach() + 0.5 * nb) / (nb / g))
+        inside = ((cell >= 0) & (cell < g)).all(-1)
+        eye = torch.eye(a, dtype=torch.bool, device=pos.device)
+        inside = inside & mask.unsqueeze(1) & mask.unsqueeze(2) & ~eye
+        idx = (cell[..., 0] * g + cell[..., 1]).long().clamp(0, g * g - 1)
+        onehot = F.one_hot(idx, g * g).to(h.dtype) * inside.unsqueeze(-1).to(h.dtype)  # (B, i, j, G^2)
+        pooled = onehot.permute(0, 1, 3, 2).reshape(b, a * g * g, a) @ h  # (B, i*G^2, H)
+        return pooled.reshape(b, a, g * g * self.hidden)
+
+    def _pooled_embedding(self, pos: Tensor, h: Tensor, mask: Tensor) -> Tensor:
+        r"""``ReLU(W vec(H_i) + b)`` without forming ``H_i``: ``(B, A, 2), (B, A, H), (B, A) -> (B, A, E)``.
+
+        ``W vec(H_i) = \sum_{j \ne i \text{ in cell } c} W_c h_j`` with ``W_c`` the weight block
+        of cell ``c``; only the neighbour pairs inside the grid are touched (equal to
+        ``pool_embed(_pool(...))``, which is tested), so the cost grows with the number of
+        close pairs, not with ``A^2 G^2 H``.
+        """
+        b, a, _ = pos.shape
+        g, nb, hd = self.grid, self.neighbourhood, self.hidden
+        lin = self.pool_embed[0]
+        with torch.no_grad():
+            rel = pos.unsqueeze(1) - pos.unsqueeze(2)  # (B, i, j, 2) = p_j - p_i
+            cell = torch.floor((rel + 0.5 * nb) / (nb / g))
+            inside = ((cell >= 0) & (cell < g)).all(-1)
+            eye = torch.eye(a, dtype=torch.bool, device=pos.device)
+            inside &= mask.unsqueeze(1) & mask.unsqueeze(2) & ~eye
+            bi, ii, jj = inside.nonzero(as_tuple=True)
+            cc = (cell[bi, ii, jj, 0] * g + cell[bi, ii, jj, 1]).long()
+        out = lin.bias.expand(b * a, -1)
+        if bi.numel():
+            order = torch.argsort(cc)  # group the pairs by cell: one matmul per occupied cell
+            cc, rows_i, rows_j = cc[order], (bi * a + ii)[order], (bi * a + jj)[order]
+            hj = h.reshape(b * a, hd)[rows_j]  # (P, H)
+            w = lin.weight.view(-1, g * g, hd)  # (E, G^2, H)
+            cells, counts = torch.unique_consecutive(cc, return_counts=True)
+            parts = [blk @ w[:, c].T for c, blk in zip(cells.tolist(), hj.split(counts.tolist()))]
+            out = out.index_add(0, rows_i, torch.cat(parts, 0))
+        return torch.relu(out).view(b, a, -1)
+
+    def _step_input(self, disp: Tensor, pos: Tensor, h: Tensor, mask: Tensor) -> Tensor:
+        e = self.input_embed(disp)
+        if self.pooling == "social":
+            e = torch.cat([e, self._pooled_embedding(pos, h, mask)], dim=-1)
+        return e
+
+    def _decode(self, history: Tensor, steps: int) -> Tensor:
+        """Core: ``(B, T_obs, A, 2)`` finite positions + mask -> ``(B, steps, A, 2)`` positions."""
+        b, t_obs, a, _ = history.shape
+        mask = torch.isfinite(history).all(-1).all(1)  # (B, A)
+        hist = torch.where(mask[:, None, :, None], history, torch.zeros_like(history))
+        disp = torch.cat([torch.zeros_like(hist[:, :1]), hist[:, 1:] - hist[:, :-1]], dim=1)
+        h = hist.new_zeros(b * a, self.hidden)
+        c = hist.new_zeros(b * a, self.hidden)
+        for t in range(t_obs):
+            x = self._step_input(disp[:, t], hist[:, t], h.view(b, a, -1), mask)
+            h, c = self.encoder(x.reshape(b * a, -1), (h, c))
+        pos, d = hist[:, -1], disp[:, -1]
+        out = []
+        for _ in range(steps):
+            x = self._step_input(d, pos, h.view(b, a, -1), mask)
+            h, c = self.decoder(x.reshape(b * a, -1), (h, c))
+            d = self.output(h).view(b, a, 2)
+            pos = pos + d
+            out.append(pos)
+        pred = torch.stack(out, dim=1)
+        return torch.where(mask[:, None, :, None], pred, torch.full_like(pred, float("nan")))
+
+    def predict(self, history: Tensor, steps: int | None = None) -> Tensor:
+        """Predicted positions ``(B, obs_len, A, 2) -> (B, pred_len, A, 2)`` (differentiable).
+
+        The ``A`` agents are one scene window: with ``pooling="social"`` they pool each
+        other. Agents with any NaN in their history are absent (NaN output). ``steps``
+        (default ``pred_len``) runs the decoder for another number of steps.
+        """
+        if history.dim() != 4 or history.shape[-1] != 2 or history.shape[1] != self.obs_len:
+            raise ValueError(f"history must be (B, obs_len={self.obs_len}, A, 2), got {tuple(history.shape)}")
+        out = self._decode(history.to(self.param_device, self.param_dtype), self.pred_len if steps is None else int(steps))
+        return out.to(history.device, history.dtype)
+
+    # MotionModel interface -----------------------------------------------------------------
+    def _check_ctx(self, ctx: StepContext) -> None:
+        if not math.isclose(float(ctx.dt), self.dt, rel_tol=1e-6):
+            raise ConfigError(f"SocialLSTM was built for dt={self.dt} s but the filter steps dt={ctx.dt} s")
+
+    def history_from_state(self, x: Tensor) -> Tensor:
+        """``(N, 4A) -> (N, obs_len, A, 2)``: ``p - k v dt`` for ``k = obs_len-1, ..., 0``."""
+        ag = agents(x)
+        p, v = ag[..., 0:2], ag[..., 2:4]
+        k = torch.arange(self.obs_len - 1, -1, -1, dtype=x.dtype, device=x.device) * self.dt
+        return p.unsqueeze(-3) - k.view(-1, 1, 1) * v.unsqueeze(-3)
+
+    def _check_state(self, x: Tensor) -> None:
+        if x.shape[-1] != self.state_dim:
+            raise ValueError(f"state must be (..., 4A={self.state_dim}), got {tuple(x.shape)}")
+
+    def forward(self, x: Tensor, ctx: StepContext) -> Tensor:
+        """One step ``(*B, 4A) -> (*B, 4A)``: first predicted position, velocity by finite difference."""
+        self._check_ctx(ctx)
+        self._check_state(x)
+        flat = x.reshape(-1, self.state_dim)
+        hist = self.history_from_state(flat)
+        p1 = self.predict(hist, steps=1)[:, 0]
+        p0 = hist[:, -1]
+        out = torch.cat([p1, (p1 - p0) / self.dt], dim=-1)
+        return joint(out).reshape(x.shape)
+
+    def noise_cov(self, x: Tensor, ctx: StepContext) -> Tensor:
+        q = self.noise_std**2 * torch.eye(self.state_dim, dtype=x.dtype, device=x.device)
+        return q.expand(*x.shape[:-1], *q.shape)
+
+    @torch.no_grad()
+    def rollout(self, x0: Tensor, steps: int, ctx: StepContext) -> Tensor:
+        """``(*B, 4A) -> (*B, steps, 4A)``: ``pred_len`` steps per decoder run; longer rollouts
+        restart the encoder from the last ``obs_len`` predicted positions."""
+        self._check_ctx(ctx)
+        self._check_state(x0)
+        flat = x0.reshape(-1, self.state_dim)
+        hist = self.history_from_state(flat)
+        seq = [hist]
+        done = 0
+        while done < steps:
+            chunk = self.predict(hist, steps=min(self.pred_len, steps - done))
+            seq.append(chunk)
+            done += chunk.shape[1]
+            hist = torch.cat(seq, dim=1)[:, -self.obs_len :]
+        pos = torch.cat(seq, dim=1)[:, self.obs_len - 1 :]  # last observed + predicted
+        vel = (pos[:, 1:] - pos[:, :-1]) / self.dt
+        out = joint(torch.cat([pos[:, 1:], vel], dim=-1))  # (N, steps, 4A)
+        return out.reshape(*x0.shape[:-1], steps, self.state_dim)
+
+
+# training -------------------------------------------------------------------------------
+def _masked_mse(pred: Tensor, target: Tensor) -> tuple[Tensor, int]:
+    """Mean squared error over present agents (finite targets and predictions); returns (loss, count)."""
+    ok = torch.isfinite(target).all(-1) & torch.isfinite(pred).all(-1)
+    n = int(ok.sum())
+    if n == 0:
+        return pred.new_zeros(()), 0
+    diff = torch.where(ok.unsqueeze(-1), pred - target, torch.zeros_like(pred))
+    return diff.pow(2).sum() / (2 * n), n
+
+
+def _compact(w: Tensor) -> Tensor:
+    """Drop agent columns absent from every window of a batch ``(B, T, A, 2)``."""
+    present = torch.isfinite(w).all(-1).all(1).any(0)
+    return w[:, :, present] if not bool(present.all()) else w
+
+
+def _check_windows(model: SocialLSTM, w: Tensor, name: str) -> None:
+    t = model.obs_len + model.pred_len
+    if w.dim() != 4 or w.shape[1] != t or w.shape[-1] != 2 or w.shape[0] < 1:
+        raise ConfigError(f"{name} must be (N>=1, obs_len+pred_len={t}, A, 2), got {tuple(w.shape)}")
+
+
+@torch.no_grad()
+def evaluate_loss(model: SocialLSTM, windows: Tensor, batch_size: int = 256) -> float:
+    """Mean L2 (MSE) loss of the predicted positions over ``windows (N, obs+pred, A, 2)``."""
+    model.eval()
+    tot, cnt = 0.0, 0
+    dev, dt = model.param_device, model.param_dtype
+    for i in range(0, windows.shape[0], batch_size):
+        w = _compact(windows[i : i + batch_size]).to(dev, dt)
+        loss, n = _masked_mse(model.predict(w[:, : model.obs_len]), w[:, model.obs_len :])
+        tot += float(loss) * n
+        cnt += n
+    return tot / max(cnt, 1)
+
+
+def train_lstm(
+    model: SocialLSTM,
+    windows: Tensor,
+    *,
+    epochs: int,
+    batch_size: int,
+    lr: float,
+    val_windows: Tensor | None = None,
+    seed: int = 0,
+    progress: bool = False,
+    checkpoint: str | Path | None = None,
+) -> pd.DataFrame:
+    """Train with Adam on the L2 (mean squared error) loss of the predicted positions.
+
+    Args:
+        model: the network (trained in place).
+        windows: ``(N, obs_len + pred_len, A, 2)`` positions; NaN = agent absent (masked).
+            With ``pooling="social"`` the ``A`` agents of a window pool each other.
+        epochs, batch_size, lr: Adam schedule (paper: 50, 8, 1e-3); a batch is
+            ``batch_size`` windows.
+        val_windows: optional validation windows (same layout); ``val_loss`` is NaN without.
+        seed: seeds the shuffling (``torch.Generator``).
+        progress: tqdm bar over epochs.
+        checkpoint: if given, the final weights are saved there (:func:`save_checkpoint`).
+    Returns:
+        DataFrame, one row per epoch: ``epoch, train_loss, val_loss, seconds``.
+    """
+    if not isinstance(epochs, int) or epochs < 1:
+        raise ConfigError(f"lstm.epochs={epochs!r} must be an integer >= 1")
+    if not isinstance(batch_size, int) or batch_size < 1:
+        raise ConfigError(f"lstm.batch_size={batch_size!r} must be an integer >= 1")
+    check_positive("lstm.lr", lr)
+    _check_windows(model, windows, "windows")
+    if val_windows is not None:
+        _check_windows(model, val_windows, "val_windows")
+    from tqdm.auto import tqdm
+
+    gen = torch.Generator().manual_seed(int(seed))
+    opt = torch.optim.Adam(model.parameters(), lr=float(lr))
+    dev, dt = model.param_device, model.param_dtype
+    n = windows.shape[0]
+    rows = []
+    bar = tqdm(range(1, epochs + 1), desc=f"train lstm ({model.pooling})", disable=not progress, leave=False)
+    for epoch in bar:
+        t0 = time.perf_counter()
+        model.train()
+        perm = torch.randperm(n, generator=gen)
+        tot, cnt = 0.0, 0
+        for i in range(0, n, batch_size):
+            w = _compact(windows[perm[i : i + batch_size]]).to(dev, dt)
+            loss, k = _masked_mse(model.predict(w[:, : model.obs_len]), w[:, model.obs_len :])
+            if k == 0:
+                continue
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            tot += float(loss.detach()) * k
+            cnt += k
+        train_loss = tot / max(cnt, 1)
+        val_loss = evaluate_loss(model, val_windows) if val_windows is not None else float("nan")
+        rows.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "seconds": time.perf_counter() - t0})
+        bar.set_postfix(train=f"{train_loss:.4f}", val=f"{val_loss:.4f}")
+    model.eval()
+    hist = pd.DataFrame(rows)
+    if checkpoint is not None:
+        save_checkpoint(model, checkpoint, hist)
+    return hist
+
+
+def save_checkpoint(model: SocialLSTM, path: str | Path, history: pd.DataFrame | None = None) -> None:
+    """``torch.save`` of ``{format, hparams, state_dict, history}`` (plain tensors and
+    builtins only, so :func:`load_checkpoint` can use ``weights_only=True``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    blob = {
+        "format": CHECKPOINT_FORMAT,
+        "hparams": model.hparams(),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "history": {} if history is None else {c: [float(v) for v in history[c]] for c in history.columns},
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(blob, tmp)
+    tmp.replace(path)
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, float) or isinstance(b, float):
+        return isinstance(a, (int, float)) and isinstance(b, (int, float)) and math.isclose(float(a), float(b), rel_tol=1e-9)
+    return a == b
+
+
+def load_checkpoint(
+    path: str | Path,
+    model: SocialLSTM | None = None,
+    *,
+    num_agents: int = 1,
+    dtype: torch.dtype = torch.float64,
+    device: str | torch.device = "cpu",
+) -> SocialLSTM:
+    """Load a checkpoint with ``torch.load(weights_only=True)``.
+
+    Into ``model`` if given (its hyperparameters must equal the saved ones, else
+    :class:`ConfigError` naming every mismatch), else into a new :class:`SocialLSTM` built
+    from the saved hyperparameters with ``num_agents``, ``dtype``, ``device``.
+    """
+    blob = torch.load(Path(path), weights_only=True, map_location="cpu")
+    if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
+        raise ConfigError(f"checkpoint {str(path)!r} is not a {CHECKPOINT_FORMAT} checkpoint")
+    saved = blob["hparams"]
+    if model is None:
+        model = SocialLSTM(num_agents, **saved, dtype=dtype, device=device)
+    else:
+        mine = model.hparams()
+        bad = [f"{k}: checkpoint {saved.get(k)!r} vs model {mine[k]!r}" for k in HPARAMS if not _same(saved.get(k), mine[k])]
+        if bad:
+            raise ConfigError(f"checkpoint {str(path)!r} does not match the model's lstm hyperparameters: " + "; ".join(bad))
+    model.load_state_dict(blob["state_dict"])
+    model.checkpoint_history = pd.DataFrame(blob.get("history") or {})
+    model.eval()
+    return model

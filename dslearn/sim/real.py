@@ -1,0 +1,106 @@
+r"""A simulated LiDAR-like sensor network over real trajectories (Yu et al. Section VI-A analogue).
+
+The paper's arena has four LiDARs around a 3.5 m x 2 m area, each talking to its two nearest
+LiDARs, with location measurements of noise :math:`\sigma_\nu = 0.2` m. Over a real scene we
+place ``S`` sensors around the scene's extent (the bounding box of every position in the
+scene): on the ellipse through the midpoints of the box's sides, enlarged by ``margin``
+(relative), at angles :math:`-\pi/2 + 2\pi i / S` (so ``S = 4`` puts one sensor at the middle
+of each side, bottom first, counter-clockwise). The graph links each sensor to its
+``k_nearest`` nearest sensors (symmetrised), through :func:`dslearn.sim.network.make_network`.
+A sensor measures a pedestrian only within ``sensing_range``: ``z = p + ν``, ``ν ~ N(0, σ_ν² I)``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from ..errors import ConfigError, check_positive
+from ..types import agents
+from .network import SensorNetwork, make_network
+from .scenario import Episodes
+
+
+def scene_extent(xy: Tensor) -> tuple[float, float, float, float]:
+    """Bounding box ``(xmin, xmax, ymin, ymax)`` of positions ``(..., 2)``."""
+    flat = torch.as_tensor(xy, dtype=torch.float64).reshape(-1, 2)
+    lo, hi = flat.min(0).values, flat.max(0).values
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+
+
+def perimeter_positions(extent: Sequence[float], num_sensors: int = 4, margin: float = 0.0) -> Tensor:
+    r"""``(S, 2)`` sensor positions around ``extent = (xmin, xmax, ymin, ymax)``.
+
+    Sensor ``i`` sits at ``centre + (1 + margin) (w/2 cos θ_i, h/2 sin θ_i)`` with
+    :math:`\theta_i = -\pi/2 + 2\pi i / S`.
+    """
+    xmin, xmax, ymin, ymax = (float(v) for v in extent)
+    if not (xmax > xmin and ymax > ymin):
+        raise ConfigError(f"scene extent {tuple(extent)} must have positive width and height")
+    if num_sensors < 1:
+        raise ConfigError(f"task.network.num_sensors={num_sensors} must be >= 1")
+    check_positive("task.network.margin", margin, strict=False)
+    cx, cy = (xmin + xmax) / 2, (ymin + ymax) / 2
+    hw, hh = (1 + margin) * (xmax - xmin) / 2, (1 + margin) * (ymax - ymin) / 2
+    th = -math.pi / 2 + 2 * math.pi * torch.arange(num_sensors, dtype=torch.float64) / num_sensors
+    pos = torch.stack([cx + hw * torch.cos(th), cy + hh * torch.sin(th)], -1)
+    return torch.where(pos.abs() < 1e-12, torch.zeros_like(pos), pos)
+
+
+def arena_network(
+    extent: Sequence[float],
+    num_sensors: int = 4,
+    k_nearest: int = 2,
+    sensing_range: float = 8.0,
+    meas_std: float = 0.2,
+    margin: float = 0.0,
+) -> SensorNetwork:
+    """The LiDAR network of the paper's robot arena, placed around a scene's extent.
+
+    Args:
+        extent: ``(xmin, xmax, ymin, ymax)`` of the scene (m).
+        num_sensors: ``S`` sensing nodes (no communication-only nodes, as in the arena).
+        k_nearest: each sensor talks to its ``k`` nearest sensors (symmetrised).
+        sensing_range: a sensor measures a pedestrian closer than this (m).
+        meas_std: :math:`\\sigma_\\nu` (m).
+        margin: relative enlargement of the placement ellipse.
+    Raises:
+        ConfigError: bad values, or a disconnected graph (naming the field to change).
+    """
+    if not isinstance(k_nearest, int) or k_nearest < 1:
+        raise ConfigError(f"task.network.k_nearest={k_nearest!r} must be an integer >= 1")
+    pos = perimeter_positions(extent, num_sensors, margin)
+    try:
+        return make_network(
+            num_sensors=num_sensors,
+            num_comm=0,
+            positions=pos.tolist(),
+            k_nearest=k_nearest,
+            comm_radius=None,
+            sensing_range=sensing_range,
+            meas_std=meas_std,
+        )
+    except ConfigError as e:
+        msg = str(e).replace("network.", "task.network.")
+        raise ConfigError(msg + "; raise task.network.k_nearest" if "disconnected" in msg else msg) from None
+
+
+def measure(states: Tensor, network: SensorNetwork, generator: torch.Generator) -> Episodes:
+    """Range-limited noisy position measurements of true joint states.
+
+    The same draws as :meth:`dslearn.sim.scenario.SocialForceScenario.sample` makes after
+    simulating (noise ``(S, B, K+1, A, 2)`` from ``generator``, zeroed where not visible).
+
+    Args:
+        states: ``(B, K+1, 4A)`` true states.
+    Returns:
+        :class:`~dslearn.sim.scenario.Episodes`.
+    """
+    pos = agents(states)[..., :2]  # (B, K+1, A, 2)
+    vis = network.visible(pos)  # (S, B, K+1, A)
+    noise = network.meas_std * torch.randn((network.num_nodes, *pos.shape), generator=generator, dtype=pos.dtype)
+    meas = (pos.unsqueeze(0) + noise.to(pos.device)) * vis.unsqueeze(-1)
+    return Episodes(states, meas, vis)

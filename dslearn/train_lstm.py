@@ -1,0 +1,115 @@
+"""``dslearn-train-lstm``: train one LSTM encoder–decoder / Social-LSTM baseline and save it.
+
+A Hydra app with its own config, ``conf/train_lstm.yaml`` (network and schedule from the
+``lstm`` group, ``conf/lstm/default.yaml``)::
+
+    dslearn-train-lstm                                   # paper defaults: obs 2, pred 10, 50 epochs, batch 8
+    dslearn-train-lstm lstm.pooling=social lstm.epochs=5 train_scenes=[zara1,zara2] val_scenes=[zara3] \\
+        train_part=all val_part=all checkpoint=slstm.pt device=cuda
+
+Windows of ``lstm.obs_len + lstm.pred_len`` steps (every pedestrian of a window present
+at all of them) come from ``train_scenes`` (``train_part`` of each file) and
+``val_scenes`` (``val_part``). Writes the checkpoint (``torch.save`` of state dict +
+hyperparameters; load with :func:`dslearn.models.lstm.load_checkpoint`, safe loading)
+and ``history.csv`` (per-epoch train/val loss) into the run directory.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+import torch
+from omegaconf import DictConfig
+
+from .data.ethucy import ALL_SCENES, load_scene, split_scene, windows
+from .errors import ConfigError, check_choice
+from .io import atomic_write_csv
+from .models.lstm import SocialLSTM, train_lstm
+
+log = logging.getLogger("dslearn.train_lstm")
+CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
+def _windows(names, part: str, cfg: DictConfig, length: int) -> torch.Tensor | None:
+    from .studies.ethucy_forecast import _cat_windows, _subsample
+
+    parts = []
+    for n in names:
+        sc = split_scene(load_scene(n, root=cfg.get("root"), convention=str(cfg.convention)), part)
+        parts.append(windows(sc, length, int(cfg.stride), int(cfg.min_peds))[0])
+    parts = [p for p in parts if p.shape[0] > 0]
+    return _cat_windows(parts) if parts else None
+
+
+def train(cfg: DictConfig, out_dir: str | Path) -> tuple[SocialLSTM, "object", Path]:
+    """Validate ``cfg``, build the data, train, save. Returns (model, history, checkpoint path)."""
+    check_choice("device", str(cfg.device).split(":")[0], ("cpu", "cuda"))
+    if str(cfg.device).startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError("device=cuda was asked for but no CUDA device is available (torch.cuda.is_available() is False); use device=cpu")
+    check_choice("dtype", cfg.dtype, tuple(DTYPES))
+    for field in ("train_scenes", "val_scenes"):
+        for s in cfg[field]:
+            check_choice(field, s, tuple(ALL_SCENES))
+    if not list(cfg.train_scenes):
+        raise ConfigError("train_scenes must name at least one scene")
+    for field in ("train_part", "val_part"):
+        check_choice(field, cfg[field], ("all", "train", "val"))
+    check_choice("convention", cfg.convention, ("benchmark", "physical"))
+    c = cfg.lstm
+    dts = {load_scene(s, root=cfg.get("root"), convention=str(cfg.convention)).dt for s in cfg.train_scenes}
+    if len(dts) > 1:
+        raise ConfigError(f"train_scenes mix time steps {sorted(dts)} under convention={cfg.convention}; use convention=benchmark")
+    model = SocialLSTM(
+        1, obs_len=int(c.obs_len), pred_len=int(c.pred_len), embed=int(c.embed), hidden=int(c.hidden),
+        pooling=str(c.pooling), grid=int(c.grid), neighbourhood=float(c.neighbourhood), dt=dts.pop(),
+        dtype=DTYPES[str(cfg.dtype)], device=str(cfg.device), noise_std=float(c.get("noise_std", 0.1)), seed=int(cfg.seed),
+    )
+    length = model.obs_len + model.pred_len
+    tr = _windows(cfg.train_scenes, str(cfg.train_part), cfg, length)
+    if tr is None:
+        raise ConfigError(f"train_scenes {list(cfg.train_scenes)} give no window of {length} steps")
+    if cfg.get("max_windows") is not None:
+        from .studies.ethucy_forecast import _subsample
+
+        tr = _subsample(tr, int(cfg.max_windows))
+    va = _windows(cfg.val_scenes, str(cfg.val_part), cfg, length) if list(cfg.val_scenes) else None
+    if model.pooling == "none":  # independent pedestrians: one sequence each, no padding
+        from .studies.ethucy_forecast import _per_agent
+
+        tr = _per_agent(tr).unsqueeze(2)
+        va = None if va is None else _per_agent(va).unsqueeze(2)
+    log.info("training %s on %d windows (%s), validating on %s", model.pooling, tr.shape[0], list(cfg.train_scenes),
+             "none" if va is None else f"{va.shape[0]} windows")
+    ckpt = Path(cfg.checkpoint) if cfg.get("checkpoint") else Path(out_dir) / f"lstm_{model.pooling}.pt"
+    hist = train_lstm(model, tr, epochs=int(c.epochs), batch_size=int(c.batch_size), lr=float(c.lr), val_windows=va,
+                      seed=int(cfg.seed), progress=bool(cfg.progress), checkpoint=ckpt)
+    atomic_write_csv(hist, Path(out_dir) / "history.csv")
+    return model, hist, ckpt
+
+
+@hydra.main(version_base=None, config_path=CONF_DIR, config_name="train_lstm")
+def _app(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    out_dir = HydraConfig.get().runtime.output_dir
+    try:
+        _, hist, ckpt = train(cfg, out_dir)
+    except ConfigError as e:
+        print(f"dslearn-train-lstm: configuration error: {e}", file=sys.stderr)
+        raise SystemExit(2)
+    print(hist.to_string(index=False))
+    print(f"checkpoint: {ckpt}")
+
+
+def main() -> None:
+    _app()
+
+
+if __name__ == "__main__":
+    main()
