@@ -9,9 +9,10 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from dslearn.dgpt.aggregation import aggregate, entropy_weights, ucb_bound
+from dslearn.dgpt.aggregation import aggregate, aggregate_grbcm, entropy_weights, ucb_bound
 from dslearn.dgpt.experts import (Hypers, closed_form_gp, expert_log_marginal_likelihood,
-                                  factorised_log_marginal_likelihood, predict_latent)
+                                  factorised_log_marginal_likelihood, predict_latent,
+                                  predict_latent_slice)
 from dslearn.dgpt.scenarios import (generate_s1, generate_s2, generate_s3, s3_turn_rates,
                                     singer_sigma)
 from dslearn.dgpt.tracker import HyperConfig, _window, track
@@ -101,6 +102,54 @@ def test_random_batches_positive_variances(rule):
     assert (b >= 0).all()
     if rule in ("bcm", "rbcm"):
         assert (v <= pv + 1e-12).all()  # prior correction never exceeds the prior
+
+
+def test_grbcm_two_experts_hand_computed():
+    mu, var, mc, vc = t(1.0, 4.0), t(0.5, 2.0), t(2.5), t(3.0)
+    b1, b2 = 0.5 * math.log(3.0 / 0.5), 0.5 * math.log(3.0 / 2.0)  # entropy gain over the comm. expert
+    prec = b1 / 0.5 + b2 / 2.0 + (1 - b1 - b2) / 3.0
+    mean = (b1 / 0.5 * 1.0 + b2 / 2.0 * 4.0 + (1 - b1 - b2) / 3.0 * 2.5) / prec
+    m, v, b = aggregate_grbcm(mu, var, torch.ones(2, dtype=torch.bool), mc, vc)
+    torch.testing.assert_close(b, t(b1, b2), **TOL)
+    torch.testing.assert_close(v, t(1 / prec), **TOL)
+    torch.testing.assert_close(m, t(mean), **TOL)
+    # no expert -> the communication expert; a masked expert is ignored
+    m0, v0, _ = aggregate_grbcm(mu, var, torch.zeros(2, dtype=torch.bool), mc, vc)
+    torch.testing.assert_close((m0, v0), (mc, vc), **TOL)
+    m1, v1, _ = aggregate_grbcm(t(1.0, -50.0), var, torch.tensor([True, False]), mc, vc)
+    m2, v2, _ = aggregate_grbcm(t(1.0), t(0.5), torch.tensor([True]), mc, vc)
+    torch.testing.assert_close((m1, v1), (m2, v2), **TOL)
+
+
+def test_predict_latent_slice_equals_gpytorch_path():
+    g = torch.Generator().manual_seed(7)
+    hyp = Hypers((2, 3, 2, 1), 3, 30.0, [2.0, 3.0, 1.5], 0.4)
+    with torch.no_grad():
+        for p_ in hyp.parameters():
+            p_.add_(0.3 * torch.randn(p_.shape, generator=g, dtype=D))
+    x = 2 * torch.randn(2, 3, 2, 4, 6, 3, generator=g, dtype=D)
+    z = 5 * torch.randn(2, 3, 2, 4, 6, generator=g, dtype=D)
+    mask = torch.rand(2, 3, 2, 4, 6, generator=g) < 0.7
+    xs = torch.randn(2, 3, 2, 4, 2, 3, generator=g, dtype=D)
+    mu, var = predict_latent(hyp, x, z, mask, xs)
+    for p_ in range(3):
+        ms, vs = predict_latent_slice(hyp, p_, x[:, p_], z[:, p_], mask[:, p_], xs[:, p_])
+        torch.testing.assert_close(ms, mu[:, p_], rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(vs, var[:, p_], rtol=1e-9, atol=1e-9)
+
+
+def test_grbcm_with_empty_communication_set_is_rbcm():
+    g = torch.Generator().manual_seed(4)
+    pv = 1.0 + 9.0 * torch.rand(20, generator=g, dtype=D)
+    var = pv[:, None] * torch.rand(20, 5, generator=g, dtype=D).clamp_min(1e-3)
+    mu = torch.randn(20, 5, generator=g, dtype=D)
+    mask = torch.rand(20, 5, generator=g) < 0.7
+    # empty D_c: the communication expert is the prior (mean 0, variance sigma_**^2)
+    mg, vg, bg = aggregate_grbcm(mu, var, mask, torch.zeros(20, dtype=D), pv)
+    mr, vr, br = aggregate(mu, var, mask, pv, "rbcm")
+    torch.testing.assert_close((mg, vg, bg), (mr, vr, br), **TOL)
+    with pytest.raises(ValueError, match="communication"):
+        aggregate(mu, var, mask, pv, "grbcm")
 
 
 def test_entropy_weights_zero_at_prior():
@@ -295,20 +344,20 @@ def test_tiny_end_to_end(gp_input, tmp_path):
         assert col in df.columns
     assert df["value"].dtype == float
     sc = df[df["step"] < 0]
-    # 2 scenarios x 2 noises x 2 runs x 5 methods
+    # 2 scenarios x 2 noises x 2 runs x 6 methods
     for met in liu_dgpt.METRICS + ("ucb_coverage",):
         sub = sc[sc["metric"] == met]
-        assert len(sub) == 2 * 2 * 2 * 5
+        assert len(sub) == 2 * 2 * 2 * 6
         assert sub["value"].notna().all() and (sub["value"] >= 0).all()
     cov = sc[sc["metric"] == "ucb_coverage"]["value"]
     assert ((cov >= 0) & (cov <= 1)).all()
-    assert set(sc["consensus"]) == {"-", "poe", "gpoe", "bcm", "rbcm"}
+    assert set(sc["consensus"]) == {"-", "poe", "gpoe", "bcm", "rbcm", "grbcm"}
     if gp_input == "temporal":  # reproducible from the seed
         df2 = liu_dgpt.run(_cfg(gp_input=gp_input))
         pd.testing.assert_frame_equal(df.reset_index(drop=True), df2.reset_index(drop=True))
     df["task"] = "liu_dgpt"
     md = liu_dgpt.report(df, df, tmp_path)
-    assert "DGPT-rBCM" in md and any(p.suffix == ".png" for p in tmp_path.iterdir())
+    assert "DGPT-rBCM" in md and "DGPT-grBCM" in md and any(p.suffix == ".png" for p in tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("field,value", [
@@ -319,3 +368,66 @@ def test_tiny_end_to_end(gp_input, tmp_path):
 def test_bad_input_raises_config_error(field, value):
     with pytest.raises(ConfigError, match=field.split(".")[0]):
         liu_dgpt.run(_cfg(**{field: value}))
+
+
+# ------------------------------------------------------------------ Hydra spelling (issue 4, part 7)
+def _compose(*overrides):
+    import pathlib
+
+    from hydra import compose, initialize_config_dir
+
+    conf = str(pathlib.Path(__file__).resolve().parents[1] / "conf")
+    with initialize_config_dir(config_dir=conf, version_base=None):
+        return compose("config", overrides=list(overrides))
+
+
+@pytest.mark.parametrize("base", ["experiment=liu_table1", "experiment=liu_table2", "task=liu_dgpt"])
+def test_hydra_cell_spelling_selects_one_cell(base):
+    cfg = _compose(base, "tracker=dgpt", "aggregation=rbcm", "gp_input=spatiotemporal", "scenario=s3",
+                   "noise=2")
+    p = liu_dgpt.validate(cfg)
+    assert p["gp_input"] == "spatiotemporal" and p["aggregations"] == ["rbcm"]
+    assert p["scenarios"] == ["s3"] and p["noises"] == [2.0] and p["centralised"] is False
+    assert p["trace"]["scenario"] == "s3" and p["trace"]["noise"] == 2.0  # the cell traces itself
+    p = liu_dgpt.validate(_compose(base, "tracker=gp", "gp_input=temporal", "scenario=s1", "noise=4.0"))
+    assert p["aggregations"] == [] and p["centralised"] is True and p["gp_input"] == "temporal"
+    assert p["scenarios"] == ["s1"] and p["noises"] == [4.0]
+    p = liu_dgpt.validate(_compose(base, "aggregation=grbcm"))  # no tracker: + standard GP
+    assert p["aggregations"] == ["grbcm"] and p["centralised"] is True
+
+
+def test_hydra_defaults_run_the_full_grid():
+    p = liu_dgpt.validate(_compose("experiment=liu_table1"))  # scenario = the Yu default
+    assert p["scenarios"] == ["s1", "s2", "s3"] and p["noises"] == [1.0, 2.0, 4.0]
+    assert p["aggregations"] == ["poe", "gpoe", "bcm", "rbcm", "grbcm"] and p["centralised"]
+    assert p["gp_input"] == "temporal"
+    assert liu_dgpt.validate(_compose("experiment=liu_table2"))["gp_input"] == "spatiotemporal"
+    cfg = _compose("experiment=liu_grid")
+    assert cfg.study == "liu_grid" and cfg.task.mc_runs == 100
+
+
+def test_hydra_unknown_values_give_clear_errors():
+    from hydra.errors import MissingConfigException
+
+    for ov, opt in (("aggregation=moe", "rbcm"), ("tracker=kf", "dgpt"), ("gp_input=spatial", "temporal"),
+                    ("scenario=s4", "s3")):
+        with pytest.raises(MissingConfigException, match=opt):  # Hydra lists the options
+            _compose("experiment=liu_table1", ov)
+    with pytest.raises(ConfigError, match="noise"):
+        liu_dgpt.validate(_compose("experiment=liu_table1", "noise=-1"))
+    with pytest.raises(ConfigError, match="noise"):
+        liu_dgpt.validate(_compose("experiment=liu_table1", "noise=abc"))
+    with pytest.raises(ConfigError, match="tracker=gp"):
+        liu_dgpt.validate(_compose("experiment=liu_table1", "tracker=gp", "aggregation=rbcm"))
+
+
+def test_tracker_gp_alone_end_to_end():
+    cfg = _cfg(scenarios=["s2"], noises=[2.0])
+    cfg.tracker = {"name": "gp"}
+    df = liu_dgpt.run(cfg)
+    assert set(df["model"]) == {"standard_gp"} and set(df["scenario"]) == {"s2"}
+    cfg2 = _cfg(scenarios=["s2"], noises=[2.0])  # the same episodes inside the full run
+    full = liu_dgpt.run(cfg2)
+    a = df[(df["metric"] == "nrmse_x_updated")]["value"].to_numpy()
+    b = full[(full["metric"] == "nrmse_x_updated") & (full["model"] == "standard_gp")]["value"].to_numpy()
+    torch.testing.assert_close(torch.tensor(a), torch.tensor(b), rtol=1e-9, atol=1e-12)

@@ -9,6 +9,13 @@ experts); it broadcasts against the batch shape.
 * ``gpoe`` : Eqs. 9-10 with :math:`\beta_i = \tfrac12(\log\sigma_{**}^2 - \log\sigma_i^2)` (Eq. 7).
 * ``bcm``  : :math:`\sigma^{-2} = \sum_i \sigma_i^{-2} + (1 - M)\sigma_{**}^{-2}` (Tresp 2000).
 * ``rbcm`` : Eqs. 12-13 with the Eq. 7 weights.
+* ``grbcm``: generalised robust BCM (Liu, Cai, Zhang, Ong, ICML 2018), :func:`aggregate_grbcm`:
+  needs a *communication expert* ``c`` (a data subset shared by all experts) and experts
+  ``+i`` trained on :math:`D_c \cup D_i`;
+  :math:`\sigma^{-2} = \sum_i \beta_i\sigma_{+i}^{-2} + (1 - \sum_i\beta_i)\sigma_c^{-2}`,
+  :math:`\mu = \sigma^2[\sum_i \beta_i\sigma_{+i}^{-2}\mu_{+i} + (1 - \sum_i\beta_i)\sigma_c^{-2}\mu_c]`,
+  :math:`\beta_i = \tfrac12(\log\sigma_c^2 - \log\sigma_{+i}^2)` (entropy gain over the
+  communication expert instead of over the prior). With an empty communication set it is rBCM.
 
 With no expert at all the result is the GP prior (mean 0, variance :math:`\sigma_{**}^2`).
 """
@@ -22,7 +29,7 @@ from torch import Tensor
 
 from ..errors import check_choice
 
-AGGREGATIONS = ("poe", "gpoe", "bcm", "rbcm")
+AGGREGATIONS = ("poe", "gpoe", "bcm", "rbcm", "grbcm")
 
 
 def entropy_weights(var: Tensor, prior_var: Tensor, mask: Tensor) -> Tensor:
@@ -54,6 +61,8 @@ def aggregate(mean: Tensor, var: Tensor, mask: Tensor, prior_var, method: str,
         actually used (1 for PoE/BCM).
     """
     check_choice("task.aggregations", method, AGGREGATIONS)
+    if method == "grbcm":
+        raise ValueError("grbcm needs a communication expert: use aggregate_grbcm()")
     pv = torch.as_tensor(prior_var, dtype=var.dtype, device=var.device).expand(var.shape[:-1])
     var = var.clamp_min(1e-12)
     maskf = mask.to(var.dtype)
@@ -78,6 +87,37 @@ def aggregate(mean: Tensor, var: Tensor, mask: Tensor, prior_var, method: str,
         prec = torch.maximum(prec, 1.0 / pv)   # exact-arithmetic property, guards round-off
     agg_var = 1.0 / prec
     agg_mean = torch.where(empty, torch.zeros_like(num), agg_var * num)
+    return agg_mean, agg_var, beta
+
+
+def aggregate_grbcm(mean: Tensor, var: Tensor, mask: Tensor, comm_mean: Tensor, comm_var: Tensor,
+                    normalise_beta: bool = False):
+    r"""Generalised robust BCM (Liu et al. 2018) with a communication expert.
+
+    Args:
+        mean, var: (..., M) predictions of the augmented experts :math:`+i` (data
+            :math:`D_c \cup D_i`).
+        mask: (..., M) bool, experts taking part (non-empty own data :math:`D_i`).
+        comm_mean, comm_var: (...) prediction of the communication expert (data :math:`D_c`
+            only; the GP prior when :math:`D_c` is empty).
+        normalise_beta: :math:`\beta_i / \sum_j \beta_j`.
+
+    Returns:
+        (mean (...), var (...), beta (..., M)). No expert -> the communication expert.
+    """
+    cv = comm_var.clamp_min(1e-12)
+    var = var.clamp_min(1e-12)
+    beta = entropy_weights(var, cv, mask)
+    if normalise_beta:
+        s = beta.sum(-1, keepdim=True)
+        beta = torch.where(s > 0, beta / s.clamp_min(1e-300), beta)
+    prec_i = beta / var
+    wc = 1.0 - beta.sum(-1)
+    prec = prec_i.sum(-1) + wc / cv
+    # each beta_i (sigma_{+i}^-2 - sigma_c^-2) >= 0 because sigma_{+i}^2 <= sigma_c^2: prec >= sigma_c^-2
+    prec = torch.maximum(prec, 1.0 / cv)
+    agg_var = 1.0 / prec
+    agg_mean = agg_var * ((prec_i * mean).sum(-1) + wc / cv * comm_mean)
     return agg_mean, agg_var, beta
 
 

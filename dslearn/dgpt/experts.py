@@ -185,6 +185,47 @@ def predict_latent(hypers: Hypers, x: Tensor, z: Tensor, mask: Tensor, x_test: T
     return mean, var
 
 
+@torch.no_grad()
+def predict_latent_slice(hypers: Hypers, index: int, x: Tensor, z: Tensor, mask: Tensor,
+                         x_test: Tensor):
+    r""":func:`predict_latent` for ONE pipeline ``index`` of hyperparameters with batch shape
+    ``(B, P, C, 1)`` (used by grBCM, whose augmented experts exist in one pipeline only).
+
+    Same SE kernel, written out (:math:`\sigma_m^2\exp(-\tfrac12\|(a-b)/\ell\|^2)`, equal to
+    GPyTorch's ``ScaleKernel(RBFKernel)``, tested), Cholesky solve with jitter fallback.
+
+    Args:
+        x: ``(B, C, M, W, d)``, z, mask: ``(B, C, M, W)``, x_test: ``(B, C, M, Q, d)``.
+
+    Returns:
+        mean, var ``(B, C, M, Q)``.
+    """
+    ls = hypers.lengthscale[:, index]          # (B, C, 1, d)
+    os_ = hypers.outputscale[:, index]         # (B, C, 1)
+    noise = hypers.noise[:, index]             # (B, C, 1)
+    ls = ls.unsqueeze(-2)                      # (B, C, 1, 1, d)
+
+    def k(a, b):
+        return os_[..., None, None] * torch.exp(-0.5 * torch.cdist(a / ls, b / ls).pow(2))
+
+    m = mask.to(x.dtype)
+    kk = k(x, x) * (m.unsqueeze(-1) * m.unsqueeze(-2)) + torch.diag_embed(1.0 - m)
+    eye = torch.eye(x.shape[-2], dtype=x.dtype, device=x.device)
+    sig = kk + noise[..., None, None] * eye
+    sig = 0.5 * (sig + sig.mT)
+    chol, info = torch.linalg.cholesky_ex(sig)
+    if bool((info > 0).any()):
+        warnings.warn("DGPT: Cholesky failed, adding jitter 1e-6 * outputscale", RuntimeWarning)
+        chol = torch.linalg.cholesky(sig + 1e-6 * os_[..., None, None] * eye)
+    ks = k(x, x_test) * m.unsqueeze(-1)
+    alpha = torch.cholesky_solve((z * m).unsqueeze(-1), chol)
+    mean = (ks * alpha).sum(-2)
+    v = torch.linalg.solve_triangular(chol, ks, upper=False)
+    prior = os_.unsqueeze(-1)
+    var = torch.minimum((prior - (v ** 2).sum(-2)).clamp_min(1e-12), prior.expand_as(mean))
+    return mean, var
+
+
 def closed_form_gp(x: Tensor, z: Tensor, x_test: Tensor, outputscale, lengthscale, noise):
     """Plain-torch reference GP (Eqs. 5, 6, 14) for one data set — used by the tests.
 

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .aggregation import aggregate, ucb_bound
-from .experts import Hypers, expert_log_marginal_likelihood, predict_latent
+from .aggregation import aggregate, aggregate_grbcm, ucb_bound
+from .experts import Hypers, expert_log_marginal_likelihood, predict_latent, predict_latent_slice
 
 GP_INPUTS = ("temporal", "spatiotemporal")
 OPTIMISERS = ("adam", "sgd")
@@ -121,8 +121,9 @@ def _make_hypers(batch_shape, d, hc: HyperConfig, dtype, device):
 def track(meas: Tensor, avail: Tensor, window: Tensor, *, gp_input: str = "temporal",
           aggregations=("poe", "gpoe", "bcm", "rbcm"), centralised: bool = True,
           hyper: HyperConfig | None = None, dt: float = 1.0, delta: float = 0.05,
-          normalise_beta: bool = False, progress: bool = False) -> TrackResult:
-    """Run DGPT (and the centralised GP) on a batch of episodes.
+          normalise_beta: bool = False, progress: bool = False, grbcm_comm_points: int = 10,
+          comm_seed: int = 0) -> TrackResult:
+    r"""Run DGPT (and the centralised GP) on a batch of episodes.
 
     Args:
         meas: ``(B, S, T, 2)`` measurements (anything where not detected).
@@ -136,6 +137,16 @@ def track(meas: Tensor, avail: Tensor, window: Tensor, *, gp_input: str = "tempo
         delta: Theorem 1 confidence parameter (bound holds w.p. >= 1 - delta).
         normalise_beta: normalise the Eq. 7 weights to sum 1.
         progress: tqdm bar over time steps.
+        grbcm_comm_points: size of grBCM's communication set (see below).
+        comm_seed: seed of the communication-set draws.
+
+    grBCM (``"grbcm"`` in ``aggregations``): at every step a random subset of
+    ``grbcm_comm_points`` measurements of the union of all current windows is the communication
+    set :math:`D_c`; it is *sent to every sensor* (extra communication, and no longer "each
+    sensor uses only its own data", DGPT's premise). Expert ``+i`` is the GP on
+    :math:`D_c \cup D_i` (:math:`D_i` = sensor i's window minus the points drawn into
+    :math:`D_c`), the communication expert the GP on :math:`D_c` alone; both use the pipeline's
+    shared hyperparameters, learned from the plain local experts (Eq. 15) as for every rule.
 
     Returns:
         :class:`TrackResult`.
@@ -147,14 +158,21 @@ def track(meas: Tensor, avail: Tensor, window: Tensor, *, gp_input: str = "tempo
     wmax = int(window.max())
     aggs = list(aggregations)
     A = len(aggs)
-    P = 1 if gp_input == "temporal" else A
+    if A == 0 and not centralised:
+        raise ValueError("track: nothing to run (no aggregation rule and centralised=False)")
+    use_e = A > 0  # A = 0: the centralised standard GP alone (tracker=gp)
+    g_on = "grbcm" in aggs
+    if g_on and int(grbcm_comm_points) < 1:
+        raise ValueError("grbcm_comm_points must be >= 1")
+    gen_c = torch.Generator().manual_seed(int(comm_seed))
+    P = 1 if gp_input == "temporal" else max(1, A)
     d = 1 if gp_input == "temporal" else 3
     C = 2
     nm = A + (1 if centralised else 0)
 
     hyp_e = _make_hypers((b, P, C, 1), d, hc, dtype, dev)
     hyp_c = _make_hypers((b, 1, C, 1), d, hc, dtype, dev) if centralised else None
-    params = list(hyp_e.parameters()) + (list(hyp_c.parameters()) if centralised else [])
+    params = (list(hyp_e.parameters()) if use_e else []) + (list(hyp_c.parameters()) if centralised else [])
     opt_cls = {"adam": torch.optim.Adam, "sgd": torch.optim.SGD}[hc.optimizer]
     opt = opt_cls(params, lr=hc.lr)
 
@@ -196,12 +214,38 @@ def track(meas: Tensor, avail: Tensor, window: Tensor, *, gp_input: str = "tempo
             xin = xin.gather(2, o[:, None, :, None].expand(b, 1, n, d))
             x_c = xin[:, :, None, None].expand(b, 1, C, 1, n, d)
 
+        if g_on:  # grBCM: communication set D_c and augmented experts D_c u D_i
+            pg = 0 if P == 1 else aggs.index("grbcm")
+            mf = m_e.reshape(b, M * wmax)
+            u = torch.rand(b, M * wmax, generator=gen_c, dtype=dtype).to(dev)
+            u = torch.where(mf, u, torch.full_like(u, -1.0))
+            ncc = min(int(grbcm_comm_points), M * wmax)
+            sc_c, o_c = u.topk(ncc, dim=1)
+            cmask = sc_c >= 0  # (B, ncc) drawn measurements (fewer where fewer exist)
+            loc = mf.clone()
+            loc.scatter_(1, o_c, False)
+            loc = loc.reshape(b, M, wmax)
+            # only grBCM's own pipeline pg: (B, C, M, W + |D_c|) augmented experts
+            xin = _inputs(times, est_e[:, pg:pg + 1], gp_input, dt)[:, 0]  # (B, W, d): per slot
+            x_cm = xin.gather(1, (o_c % wmax)[..., None].expand(b, ncc, d))  # (B, ncc, d)
+            z_cm = z_e.reshape(b, M * wmax, 2).gather(1, o_c[..., None].expand(b, ncc, 2))
+            x_ag = torch.cat([xin[:, None, None].expand(b, C, M, wmax, d),
+                              x_cm[:, None, None].expand(b, C, M, ncc, d)], -2)
+            y_ag = torch.cat([z_e.permute(0, 3, 1, 2),
+                              z_cm.permute(0, 2, 1)[:, :, None].expand(b, C, M, ncc)], -1)
+            mk_ag = torch.cat([loc[:, None].expand(b, C, M, wmax),
+                               cmask[:, None, None].expand(b, C, M, ncc)], -1)
+            x_c1 = x_cm[:, None, None].expand(b, C, 1, ncc, d)
+            y_c1 = z_cm.permute(0, 2, 1)[:, :, None]
+            mk_c1 = cmask[:, None, None].expand(b, C, 1, ncc)
+            emask_g = loc.any(-1)[:, None, :].expand(b, C, M)
+
         # --- online hyperparameter learning (Eq. 15 / Eq. 14), warm-started ---------------
         if bool(has_data.any()):
             n_it = hc.iters_first if bool((has_data & ~had).any()) else hc.iters
             for _ in range(n_it):
                 opt.zero_grad()
-                loss = -expert_log_marginal_likelihood(hyp_e, x_e, y_e, mk_e).sum()
+                loss = -expert_log_marginal_likelihood(hyp_e, x_e, y_e, mk_e).sum() if use_e else 0.0
                 if centralised:
                     loss = loss - expert_log_marginal_likelihood(hyp_c, x_c, y_c, mk_c).sum()
                 loss.backward()
@@ -217,13 +261,27 @@ def track(meas: Tensor, avail: Tensor, window: Tensor, *, gp_input: str = "tempo
                                                     (k + 1, pred_mean, pred_var, pred_bound)):
             if target_k >= T:
                 continue
-            xs = _test_input(target_k, est_e, gp_input, dt)[:, :, None, None].expand(b, P, C, M, 1, d)
-            mu, var = predict_latent(hyp_e, x_e, y_e, mk_e, xs)
-            mu, var = mu[..., 0], var[..., 0]  # (B, P, C, M)
-            prior = hyp_e.outputscale.detach()[..., 0]  # (B, P, C)
-            emask = m_e.any(-1)[:, None, None, :].expand(b, P, C, M)
+            if use_e:
+                xs = _test_input(target_k, est_e, gp_input, dt)[:, :, None, None].expand(b, P, C, M, 1, d)
+                mu, var = predict_latent(hyp_e, x_e, y_e, mk_e, xs)
+                mu, var = mu[..., 0], var[..., 0]  # (B, P, C, M)
+                prior = hyp_e.outputscale.detach()[..., 0]  # (B, P, C)
+                emask = m_e.any(-1)[:, None, None, :].expand(b, P, C, M)
+            if g_on:
+                xg = _test_input(target_k, est_e[:, pg:pg + 1], gp_input, dt)[:, 0, None, None]
+                mu_g, var_g = predict_latent_slice(hyp_e, pg, x_ag, y_ag, mk_ag, xg.expand(b, C, M, 1, d))
+                mu_c1, var_c1 = predict_latent_slice(hyp_e, pg, x_c1, y_c1, mk_c1, xg.expand(b, C, 1, 1, d))
+                mu_g, var_g = mu_g[..., 0], var_g[..., 0]  # (B, C, M)
+                mu_c1, var_c1 = mu_c1[:, :, 0, 0], var_c1[:, :, 0, 0]  # (B, C)
             for a, rule in enumerate(aggs):
                 p = 0 if P == 1 else a
+                if rule == "grbcm":
+                    am, av, beta = aggregate_grbcm(mu_g, var_g, emask_g, mu_c1, var_c1, normalise_beta)
+                    store_m[:, a, target_k] = am
+                    store_v[:, a, target_k] = av
+                    # Eq. 24 applied by analogy to the augmented experts' weights (no theorem for grBCM)
+                    store_b[:, a, target_k] = ucb_bound(var_g, beta, emask_g, prior[:, p], delta)
+                    continue
                 am, av, beta = aggregate(mu[:, p], var[:, p], emask[:, p], prior[:, p], rule,
                                          normalise_beta)
                 store_m[:, a, target_k] = am

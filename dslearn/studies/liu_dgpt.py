@@ -47,31 +47,90 @@ def _int(field, v, minimum=1):
     return iv
 
 
+TRACKERS = ("dgpt", "gp")
+
+
+def _group_name(cfg, group):
+    """Name selected in a top-level config group (``tracker=dgpt`` -> ``"dgpt"``), or None."""
+    node = _get(cfg, group)
+    if node is None:
+        return None
+    name = _get(node, "name")
+    if name is None:
+        raise ConfigError(f"{group}: the selected config has no 'name' key")
+    return str(name)
+
+
+def _selection(cfg, t) -> dict:
+    """Apply the command-line selection of one grid cell (issue 4, Sec. 7 spelling).
+
+    ``tracker=dgpt|gp aggregation=<rule> gp_input=<input> scenario=s1|s2|s3 noise=<sigma>``
+    (top-level config groups ``tracker``, ``aggregation``, ``gp_input``, the shared ``scenario``
+    group and the plain top-level value ``noise``) override ``task.gp_input``,
+    ``task.aggregations``, ``task.scenarios``, ``task.noises`` and ``task.centralised``. A
+    scenario that is not one of the Liu scenarios (the Yu study's default ``yu_two_agents``)
+    selects nothing: the task's full list is used.
+    """
+    sel = {}
+    gi = _group_name(cfg, "gp_input")
+    if gi is not None:
+        check_choice("gp_input", gi, GP_INPUTS)
+        sel["gp_input"] = gi
+    ag = _group_name(cfg, "aggregation")
+    if ag is not None:
+        check_choice("aggregation", ag, AGGREGATIONS)
+        sel["aggregations"] = [ag]
+    sc = _get(cfg, "scenario")
+    liu_sc = _get(sc, "liu_scenario") if sc is not None else None
+    if liu_sc is not None:
+        check_choice("scenario", str(liu_sc), SCENARIOS)
+        sel["scenarios"] = [str(liu_sc)]
+    nz = _get(cfg, "noise")
+    if nz is not None:
+        sel["noises"] = [nz] if isinstance(nz, (int, float)) and not isinstance(nz, bool) else nz
+        for n in _as_list("noise", sel["noises"]):
+            check_positive("noise", n)
+    tk = _group_name(cfg, "tracker")
+    if tk is not None:
+        check_choice("tracker", tk, TRACKERS)
+        if tk == "gp":
+            if ag is not None:
+                raise ConfigError(f"tracker=gp (the centralised standard GP) takes no aggregation; "
+                                  f"got aggregation={ag}: use tracker=dgpt aggregation={ag}")
+            sel["aggregations"] = []
+            sel["centralised"] = True
+        else:
+            sel["centralised"] = False
+    return sel
+
+
 def validate(cfg) -> dict:
-    """Check ``cfg.task`` and return a plain dict of parameters. Raises ConfigError first."""
+    """Check ``cfg.task`` (and the top-level cell selection, see :func:`_selection`) and return
+    a plain dict of parameters. Raises ConfigError first."""
     t = cfg.task
+    sel = _selection(cfg, t)
     p = {}
-    p["gp_input"] = _get(t, "gp_input", "temporal")
+    p["gp_input"] = sel.get("gp_input", _get(t, "gp_input", "temporal"))
     check_choice("task.gp_input", p["gp_input"], GP_INPUTS)
-    p["scenarios"] = [str(s) for s in _as_list("task.scenarios", _get(t, "scenarios", SCENARIOS))]
+    p["scenarios"] = [str(s) for s in _as_list("task.scenarios", sel.get("scenarios", _get(t, "scenarios", SCENARIOS)))]
     if not p["scenarios"]:
         raise ConfigError(f"task.scenarios must not be empty; choose from {list(SCENARIOS)}")
     for s in p["scenarios"]:
         check_choice("task.scenarios", s, SCENARIOS)
-    p["noises"] = _as_list("task.noises", _get(t, "noises", [1.0, 2.0, 4.0]))
+    p["noises"] = _as_list("task.noises", sel.get("noises", _get(t, "noises", [1.0, 2.0, 4.0])))
     if not p["noises"]:
         raise ConfigError("task.noises must not be empty")
     for n in p["noises"]:
         check_positive("task.noises", n)
     p["noises"] = [float(n) for n in p["noises"]]
-    p["aggregations"] = [str(a) for a in _as_list("task.aggregations", _get(t, "aggregations", AGGREGATIONS))]
-    if not p["aggregations"]:
+    p["aggregations"] = [str(a) for a in _as_list("task.aggregations", sel.get("aggregations", _get(t, "aggregations", AGGREGATIONS)))]
+    if not p["aggregations"] and "aggregations" not in sel:
         raise ConfigError(f"task.aggregations must not be empty; choose from {list(AGGREGATIONS)}")
     for a in p["aggregations"]:
         check_choice("task.aggregations", a, AGGREGATIONS)
     if len(set(p["aggregations"])) != len(p["aggregations"]):
         raise ConfigError(f"task.aggregations={p['aggregations']} has duplicates")
-    p["centralised"] = bool(_get(t, "centralised", True))
+    p["centralised"] = bool(sel.get("centralised", _get(t, "centralised", True)))
     p["mc_runs"] = _int("task.mc_runs", _get(t, "mc_runs", 30))
     p["batch_runs"] = _int("task.batch_runs", _get(t, "batch_runs", 50))
     p["num_sensors"] = _int("task.num_sensors", _get(t, "num_sensors", 200))
@@ -91,6 +150,7 @@ def validate(cfg) -> dict:
         raise ConfigError(f"task.ucb_delta={delta!r} must be in (0, 1)")
     p["ucb_delta"] = delta
     p["normalise_beta"] = bool(_get(t, "normalise_beta", False))
+    p["grbcm_comm_points"] = _int("task.grbcm_comm_points", _get(t, "grbcm_comm_points", 10))
     h = _get(t, "hyper", {}) or {}
     hc = HyperConfig()
     opt = h.get("optimizer", hc.optimizer)
@@ -114,6 +174,11 @@ def validate(cfg) -> dict:
     tr = _get(t, "trace", {}) or {}
     p["trace"] = {"scenario": str(tr.get("scenario", "s1")), "noise": float(tr.get("noise", 4.0)),
                   "episodes": _int("task.trace.episodes", tr.get("episodes", 1), minimum=0)}
+    # a single-cell run (e.g. scenario=s3 noise=2) traces its own cell when the configured one
+    # is not part of its grid
+    if p["trace"]["scenario"] not in p["scenarios"] or not any(
+            math.isclose(p["trace"]["noise"], n) for n in p["noises"]):
+        p["trace"]["scenario"], p["trace"]["noise"] = p["scenarios"][0], p["noises"][0]
     th = _get(t, "torch_threads", 1)
     p["torch_threads"] = None if th is None else _int("task.torch_threads", th)
     return p
@@ -206,7 +271,8 @@ def _run(p, seed, device, dtype, progress):
         res = track(meas[sel].to(device=device, dtype=dtype), avail[sel].to(device), window[sel],
                     gp_input=p["gp_input"], aggregations=p["aggregations"],
                     centralised=p["centralised"], hyper=p["hyper"], dt=p["dt"],
-                    delta=p["ucb_delta"], normalise_beta=p["normalise_beta"], progress=progress)
+                    delta=p["ucb_delta"], normalise_beta=p["normalise_beta"], progress=progress,
+                    grbcm_comm_points=p["grbcm_comm_points"], comm_seed=seed * 1_000_003 + c0)
         av = avail[sel].to(device)
         met = _episode_metrics(res, tr, av, p["ucb_delta"])
         model, cons = _method_keys(res.methods)
@@ -272,7 +338,8 @@ def _traces(p, res, truth, avail, kk, model, cons):
 
 # ----------------------------------------------------------------------------- report
 _METHOD_ORDER = [("standard_gp", "-", "Standard GP"), ("dgpt", "rbcm", "DGPT-rBCM"),
-                 ("dgpt", "gpoe", "DGPT-GPoE"), ("dgpt", "poe", "DGPT-PoE"), ("dgpt", "bcm", "DGPT-BCM")]
+                 ("dgpt", "gpoe", "DGPT-GPoE"), ("dgpt", "poe", "DGPT-PoE"), ("dgpt", "bcm", "DGPT-BCM"),
+                 ("dgpt", "grbcm", "DGPT-grBCM")]
 _TITLE = {"temporal": ("liu_table1_temporal", "Table I (temporal GP)"),
           "spatiotemporal": ("liu_table2_spatiotemporal", "Table II (spatio-temporal GP)")}
 
@@ -376,6 +443,10 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: pathlib.Path) 
     for gp_input in sorted(tr["gp_input"].unique()) if len(tr) else []:
         name = _TITLE.get(gp_input, (f"liu_table_{gp_input}",))[0]
         t = tr[(tr["gp_input"] == gp_input) & (tr["episode"] == tr["episode"].min())]
+        # one cell per figure (a multirun over cells has traces of each): S1, sigma = 4 if present
+        cells = sorted(set(zip(t["scenario"], t["noise"].astype(float))))
+        cell = ("s1", 4.0) if ("s1", 4.0) in cells else cells[0]
+        t = t[(t["scenario"] == cell[0]) & (t["noise"].astype(float) == cell[1])]
         for c, fig_no in (("x", 5), ("y", 6)):
             fig, ax = plt.subplots(figsize=(9, 4))
             truth_drawn = False
