@@ -1,8 +1,12 @@
 """``dslearn-report DIR``: gather a run or multirun directory into paper-shaped tables and figures.
 
-Writes ``DIR/summary.csv`` (columns ``study, consensus, node, model, metric, mean, std, n``
-plus every other key column), each study's Markdown/CSV tables and PNG figures, and prints
-the Markdown.
+``DIR`` is a run directory, a sweep directory (its gathered ``sweep_results.parquet``/``.csv`` is
+used when present, else every complete job's ``results.csv``; broken job dirs are skipped with a
+warning) or the path of a gathered table itself. Writes ``summary.csv`` (columns
+``study, consensus, node, model, metric, mean, std, n`` plus every other key column), and when
+several seeds are present ``summary_seeds.csv`` (per-seed means, then mean ± std over seeds),
+the generic ``tables.md`` / ``tables.tex`` (one table per metric, mean ± std) and one PNG per
+metric, each study's own Markdown/CSV tables and PNG figures, and prints the Markdown.
 """
 
 from __future__ import annotations
@@ -14,9 +18,11 @@ from pathlib import Path
 
 import pandas as pd
 
+from .errors import DataFormatError
 from .io import atomic_write_csv, atomic_write_text, load_results
 
-NON_KEYS = {"value", "episode", "seed", "run_dir"}
+#: columns that are not keys: values, replicates, and bookkeeping of gathered sweeps
+NON_KEYS = {"value", "episode", "seed", "run_dir", "job", "ov.seed"}
 REQUIRED = ["study", "consensus", "node", "model", "metric"]
 
 
@@ -84,11 +90,101 @@ def markdown(df: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-def report(root: str | Path) -> str:
+def seed_summary(results: pd.DataFrame) -> pd.DataFrame | None:
+    """Mean ± std over seeds: per seed the mean over episodes, then across seeds (``None`` with one seed)."""
+    if "seed" not in results.columns or results["seed"].nunique() < 2:
+        return None
+    df = results.copy()
+    for c in REQUIRED:
+        if c not in df.columns:
+            df[c] = "-"
+    keys = [k for k in key_columns(df)]
+    for c in keys:
+        if df[c].isna().any():
+            df[c] = df[c].astype(object).where(df[c].notna(), "-")
+    per_seed = df.groupby(keys + ["seed"], dropna=False, sort=False)["value"].mean().reset_index()
+    out = per_seed.groupby(keys, dropna=False, sort=False)["value"].agg(mean="mean", std="std", n_seeds="count")
+    return out.reset_index()
+
+
+def metric_tables(summary: pd.DataFrame) -> dict[str, pd.DataFrame]:
+    """One table per metric: rows = the key columns that vary, cell = ``mean ± std``.
+
+    Where the summary has an ``avg`` node (the paper's "Average" row) only that node is shown.
+    """
+    s = summary.copy()
+    if "node" in s.columns and (s["node"] == "avg").any():
+        s = s[s["node"] == "avg"]
+    keys = [c for c in s.columns if c not in ("metric", "mean", "std", "n", "n_seeds") and s[c].nunique(dropna=False) > 1]
+    keys = [c for c in keys if not (c.startswith("ov.") and c[3:] in s.columns)]  # override = a column already
+    out = {}
+    for metric, g in s.groupby("metric", sort=False):
+        cell = g["mean"].map("{:.4g}".format) + " ± " + g["std"].map(lambda v: "-" if pd.isna(v) else f"{v:.2g}")
+        t = g[keys].copy() if keys else pd.DataFrame(index=g.index)
+        t["mean ± std"] = cell.values
+        n = "n_seeds" if "n_seeds" in g.columns else "n"
+        t[n] = g[n].values
+        out[str(metric)] = t.reset_index(drop=True)
+    return out
+
+
+def to_latex(df: pd.DataFrame, caption: str) -> str:
+    """A LaTeX table (``DataFrame.to_latex``; plain tabular fallback without jinja2)."""
+    try:
+        body = df.to_latex(index=False, caption=caption.replace("_", r"\_"), escape=True)
+        return body.replace("±", r"$\pm$")
+    except ImportError:
+        cols = " & ".join(str(c) for c in df.columns)
+        rows = " \\\n".join(" & ".join(str(v) for v in r) for r in df.itertuples(index=False))
+        return f"\\begin{{tabular}}{{{'l' * len(df.columns)}}}\n{cols} \\\\\n\\hline\n{rows} \\\\\n\\end{{tabular}}\n"
+
+
+def _plot_metric(table: pd.DataFrame, metric: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [c for c in table.columns if c not in ("mean ± std", "n", "n_seeds")]
+    labels = [" ".join(str(v) for v in r) for r in table[keys].itertuples(index=False)] if keys else ["all"] * len(table)
+    cells = table["mean ± std"].str.split(" ± ", expand=True)
+    mean = pd.to_numeric(cells[0], errors="coerce")
+    std = pd.to_numeric(cells[1], errors="coerce").fillna(0.0)
+    fig, ax = plt.subplots(figsize=(max(4.0, 0.45 * len(table) + 2), 3.2))
+    ax.bar(range(len(table)), mean, yerr=std, capsize=3, color="#4c72b0")
+    ax.set_xticks(range(len(table)))
+    ax.set_xticklabels(labels, rotation=60, ha="right", fontsize=7)
+    ax.set_ylabel(metric)
+    ax.set_title(f"{metric} (mean ± std)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def generic_tables(summary: pd.DataFrame, out_dir: Path, figures: bool = True) -> str:
+    """``tables.md``, ``tables.tex`` and ``<metric>.png`` for any tidy summary; returns the Markdown."""
+    md, tex = [], []
+    for metric, t in metric_tables(summary).items():
+        md.append(f"### {metric}\n\n{markdown(t)}")
+        tex.append(to_latex(t, f"{metric}: mean $\\pm$ std"))
+        if figures:
+            _plot_metric(t, metric, out_dir / f"{metric}.png")
+    text = "\n\n".join(md)
+    atomic_write_text(out_dir / "tables.md", text + "\n")
+    atomic_write_text(out_dir / "tables.tex", "\n\n".join(tex))
+    return text
+
+
+def report(root: str | Path, out_dir: str | Path | None = None) -> str:
     root = Path(root)
+    out = Path(out_dir) if out_dir is not None else (root.parent if root.is_file() else root)
+    out.mkdir(parents=True, exist_ok=True)
     results = load_results(root)
     summary = summarize(results)
-    atomic_write_csv(summary, root / "summary.csv")
+    atomic_write_csv(summary, out / "summary.csv")
+    seeds = seed_summary(results)
+    if seeds is not None:
+        atomic_write_csv(seeds, out / "summary_seeds.csv")
     texts = []
     tasks = results["task"].dropna().unique() if "task" in results.columns else []
     for task in tasks:
@@ -99,22 +195,25 @@ def report(root: str | Path) -> str:
         fn = getattr(mod, "report", None)
         if fn is not None:
             sub = results[results["task"] == task]
-            texts.append(fn(sub, summary[summary.get("task", task) == task] if "task" in summary else summary, root))
-    text = "\n\n".join(t for t in texts if t) or markdown(summary)
-    atomic_write_text(root / "report.md", text + "\n")
+            texts.append(fn(sub, summary[summary.get("task", task) == task] if "task" in summary else summary, out))
+    generic = generic_tables(seeds if seeds is not None else summary, out, figures=not any(texts))
+    text = "\n\n".join(t for t in texts if t) or generic
+    atomic_write_text(out / "report.md", text + "\n")
     return text
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="dslearn-report", description=__doc__.splitlines()[0])
-    p.add_argument("dir", help="a run or multirun output directory")
+    p.add_argument("dir", help="a run or sweep output directory, or a gathered sweep_results.{parquet,csv}")
+    p.add_argument("--out", default=None, help="write the tables/figures here (default: DIR)")
     a = p.parse_args(argv)
     try:
-        print(report(a.dir))
-    except FileNotFoundError as e:
+        print(report(a.dir, a.out))
+    except (FileNotFoundError, DataFormatError) as e:
         print(f"dslearn-report: {e}", file=sys.stderr)
         raise SystemExit(2)
-    print(f"\nwrote {Path(a.dir) / 'summary.csv'} and the tables/figures beside it")
+    where = Path(a.out) if a.out else (Path(a.dir).parent if Path(a.dir).is_file() else Path(a.dir))
+    print(f"\nwrote {where / 'summary.csv'}, tables.md/.tex and the figures beside it")
 
 
 if __name__ == "__main__":

@@ -80,6 +80,7 @@ def track(
     init: tuple[Tensor, Tensor],
     learn: bool = False,
     learn_gate_std: float | None = None,
+    gate_prob: float | None = None,
 ) -> TrackResult:
     r"""Run the distributed EKF over a batch of episodes (Algorithm 1).
 
@@ -103,7 +104,7 @@ def track(
     steps = ep.states.shape[1] - 1
     for t in range(1, steps + 1):
         y_pred, q_pred, o_pred = predict(y, o, model, ctx)
-        dq, do = novel_information(y_pred, ep.meas[:, :, t], ep.visible[:, :, t], obs)
+        dq, do = novel_information(y_pred, ep.meas[:, :, t], ep.visible[:, :, t], obs, gate_prob=gate_prob, omega_pred=o_pred)
         q, o = fusion(q_pred, o_pred, dq, do)
         y_new = torch.cholesky_solve(q.unsqueeze(-1), safe_cholesky(o)).squeeze(-1)
         if learn:

@@ -18,7 +18,13 @@ FUSIONS = ("individual", "ce", "cm", "ci", "hybrid", "centralized")
 
 
 def mix(w: Tensor, y: Tensor) -> Tensor:
-    """One (or, with ``W^L``, several) consensus rounds: ``(S, S) x (S, ...) -> (S, ...)``."""
+    """One (or, with ``W^L``, several) consensus rounds: ``(S, S) x (S, ...) -> (S, ...)``.
+
+    A batched ``w`` of shape ``(B, S, S)`` (one weight matrix per episode, e.g. the live graph
+    of a faulty network, :mod:`dslearn.faults`) mixes ``y (S, B, ...)`` episode by episode.
+    """
+    if w.ndim == 3:
+        return torch.einsum("bij,jb...->ib...", w.to(y), y)
     return torch.einsum("ij,j...->i...", w.to(y), y)
 
 

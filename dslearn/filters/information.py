@@ -6,6 +6,8 @@ Shapes: nodes first, ``(S, B, Dx)`` and ``(S, B, Dx, Dx)``.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -45,8 +47,28 @@ def predict(
     return y_pred, q_pred, omega_pred
 
 
+#: chi-square gating counters (``novel_information(..., gate_prob=...)``): measurements tested / rejected
+GATE_STATS = {"tested": 0, "rejected": 0}
+
+
+def chi2_quantile(prob: float, dof: int) -> float:
+    """Quantile of the chi-square distribution (closed form for 2 degrees of freedom)."""
+    if not 0.0 < prob < 1.0:
+        raise ValueError(f"gate probability {prob!r} must be in (0, 1)")
+    if dof == 2:
+        return -2.0 * math.log1p(-prob)
+    from scipy.stats import chi2  # only for measurement dimensions other than 2
+
+    return float(chi2.ppf(prob, dof))
+
+
 def novel_information(
-    y_pred: Tensor, meas: Tensor, visible: Tensor, obs: ObservationModel
+    y_pred: Tensor,
+    meas: Tensor,
+    visible: Tensor,
+    obs: ObservationModel,
+    gate_prob: float | None = None,
+    omega_pred: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     r"""Novel information of each node's measurements (Algorithm 2 lines 7–11).
 
@@ -55,13 +77,23 @@ def novel_information(
     with :math:`C_j` the Jacobian placed in target ``j``'s block. A node that sees nothing
     contributes zero.
 
+    Robust update (optional): with ``gate_prob`` (e.g. 0.99) a measurement is used only if its
+    innovation :math:`\nu = z - h(\hat y_j)` passes the chi-square gate
+    :math:`\nu^T S^{-1} \nu \le \chi^2_{D_z}(p)`, :math:`S = C_j P_{jj} C_j^T + R_j` with
+    :math:`P = (\Omega^{t|t-1})^{-1}` from ``omega_pred`` (``R`` alone if ``omega_pred`` is None).
+    Rejected measurements count in :data:`GATE_STATS`.
+
     Args:
         y_pred: ``(S, B, Dx)``; meas: ``(S, B, A, 2)``; visible: ``(S, B, A)`` bool.
+        gate_prob: chi-square gate probability, ``None`` = no gating (the paper).
+        omega_pred: ``(S, B, Dx, Dx)`` prior information (for the innovation covariance).
     Returns:
         ``(dq (S, B, Dx), domega (S, B, Dx, Dx))``.
     """
     yj = y_pred.unflatten(-1, (-1, AGENT_DIM))  # (S, B, A, 4)
     h, C, R = obs.linearize(yj)
+    if gate_prob is not None:
+        visible = _gate(meas - h, C, R, omega_pred, visible, gate_prob)
     Rinv_C = torch.linalg.solve(R, C)  # (S, B, A, 2, 4)
     zbar = meas - h + (C @ yj.unsqueeze(-1)).squeeze(-1)
     m = visible.to(y_pred.dtype)
@@ -79,3 +111,19 @@ def _block_diag(blocks: Tensor) -> Tensor:
     for j in range(a):
         out[..., j * d : (j + 1) * d, j * d : (j + 1) * d] = blocks[..., j, :, :]
     return out
+
+
+def _gate(nu: Tensor, C: Tensor, R: Tensor, omega_pred: Tensor | None, visible: Tensor, prob: float) -> Tensor:
+    """Chi-square innovation gate: ``visible & (nu^T S^-1 nu <= chi2(prob))``, shapes ``(S, B, A)``."""
+    S_cov = R
+    if omega_pred is not None:
+        s, b, dx = omega_pred.shape[:3]
+        a = dx // AGENT_DIM
+        P = torch.cholesky_inverse(safe_cholesky(omega_pred)).view(s, b, a, AGENT_DIM, a, AGENT_DIM)
+        Pjj = torch.diagonal(P, dim1=2, dim2=4).permute(0, 1, 4, 2, 3)  # (S, B, A, 4, 4)
+        S_cov = symmetrize(C @ Pjj @ C.transpose(-1, -2) + R)
+    d2 = (nu.unsqueeze(-2) @ torch.linalg.solve(S_cov, nu.unsqueeze(-1))).squeeze(-1).squeeze(-1)
+    ok = d2 <= chi2_quantile(prob, nu.shape[-1])
+    GATE_STATS["tested"] += int(visible.sum())
+    GATE_STATS["rejected"] += int((visible & ~ok).sum())
+    return visible & ok

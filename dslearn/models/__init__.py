@@ -4,6 +4,7 @@ from .base import MotionModel, ObservationModel
 from .constant_velocity import ConstantVelocity
 from .social_force import SocialForce
 from .gp import GPMotionModel, OnlineGP
+from .sparse import SGPR, SSGP, WindowGP
 from .observation import LinearPositionObservation, GPObservation
 
 __all__ = [
@@ -13,6 +14,9 @@ __all__ = [
     "SocialForce",
     "GPMotionModel",
     "OnlineGP",
+    "WindowGP",
+    "SGPR",
+    "SSGP",
     "LinearPositionObservation",
     "GPObservation",
 ]

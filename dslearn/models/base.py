@@ -67,12 +67,43 @@ class MotionModel(nn.Module, abc.ABC):
         return self
 
     def save(self, path: str | Path) -> None:
-        """Save parameters and data (``torch.save`` of a plain tensor dict)."""
-        torch.save(self.state_dict(), path)
+        """Save parameters and data: ``torch.save`` of ``{format, class, state_dict}`` (plain tensors)."""
+        torch.save({"format": "dslearn-motion-v1", "class": type(self).__name__, "state_dict": self.state_dict()}, path)
 
     def load(self, path: str | Path) -> "MotionModel":
-        """Load what :meth:`save` wrote; uses safe (weights-only) loading."""
-        self.load_state_dict(torch.load(path, weights_only=True))
+        """Load what :meth:`save` wrote with safe (weights-only) loading, and check that it matches
+        this model (class, parameter names and shapes = the configuration it was built from).
+
+        Raises:
+            DataFormatError: the file is missing, not a weights-only checkpoint, or malformed.
+            ConfigError: the checkpoint was saved by another model class or configuration.
+        """
+        from ..errors import ConfigError, DataFormatError
+
+        try:
+            blob = torch.load(path, weights_only=True, map_location="cpu")
+        except FileNotFoundError:
+            raise DataFormatError(f"{path}: no such model file") from None
+        except Exception as e:  # unpickling refused (not weights-only) or corrupt file
+            raise DataFormatError(f"{path}: not a safe (weights-only) dslearn model file: {str(e).splitlines()[0]}") from None
+        if isinstance(blob, dict) and blob.get("format") == "dslearn-motion-v1":
+            if blob.get("class") != type(self).__name__:
+                raise ConfigError(f"{path}: saved by model class {blob.get('class')!r}, but the config builds {type(self).__name__!r}")
+            state = blob["state_dict"]
+        elif isinstance(blob, dict) and all(isinstance(v, torch.Tensor) for v in blob.values()):
+            state = blob  # a plain state dict (older files)
+        else:
+            raise DataFormatError(f"{path}: not a dslearn model file (expected a dict of tensors)")
+        own = self.state_dict()
+        missing, extra = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+        shapes = [f"{k}: file {tuple(state[k].shape)} vs config {tuple(own[k].shape)}"
+                  for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
+        if missing or extra or shapes:
+            raise ConfigError(
+                f"{path} does not match the configured {type(self).__name__}: "
+                + "; ".join(filter(None, [f"missing {missing}" if missing else "", f"unexpected {extra}" if extra else "", *shapes]))
+            )
+        self.load_state_dict(state)
         return self
 
 

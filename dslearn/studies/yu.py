@@ -39,7 +39,7 @@ from ..types import JITTER
 
 log = logging.getLogger(__name__)
 
-MODEL_KINDS = ("lin", "sfm", "gp")
+MODEL_KINDS = ("lin", "sfm", "gp", "gp_aggregated")
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
@@ -81,12 +81,14 @@ def build_network(c: Any) -> SensorNetwork:
 
 
 def build_motion_model(c: Any, scenario: SocialForceScenario, num_nodes: int, dtype, device) -> MotionModel:
-    """Motion model from its config: ``kind`` in ``lin | sfm | gp``; ``name`` is the label
-    (``lin``, ``sfm``, or any name starting with ``gp``)."""
+    """Motion model from its config: ``kind`` in ``lin | sfm | gp | gp_aggregated``; ``name`` is
+    the label (``lin``, ``sfm``, or any name starting with ``gp``). ``gp_aggregated`` is the GP
+    whose per-node predictions are fused by a product-of-experts rule (PoE/gPoE/BCM/rBCM) across
+    all nodes, see :mod:`dslearn.models.aggregated`."""
     name = str(c.name)
     kind = str(c.get("kind", name))
     check_choice("model.kind", kind, MODEL_KINDS)
-    if kind == "gp" and not name.startswith("gp"):
+    if kind in ("gp", "gp_aggregated") and not name.startswith("gp"):
         raise ConfigError(f"model.name={name!r}: a GP variant's name must start with 'gp'")
     if kind in ("lin", "sfm") and name != kind:
         raise ConfigError(f"model.name={name!r} must be {kind!r} for model.kind={kind!r}")
@@ -95,6 +97,10 @@ def build_motion_model(c: Any, scenario: SocialForceScenario, num_nodes: int, dt
     if kind == "sfm":
         s = scenario.sfm
         return SocialForce(s.desired.tolist(), s.tau.tolist(), s.alpha.tolist(), s.beta.tolist(), c.noise_std).to(device)
+    if kind == "gp_aggregated":
+        from ..models.aggregated import build_aggregated_motion
+
+        return build_aggregated_motion(c, scenario.state_dim, num_nodes, dtype, device)
     return GPMotionModel(
         scenario.state_dim,
         num_nodes,
@@ -107,8 +113,12 @@ def build_motion_model(c: Any, scenario: SocialForceScenario, num_nodes: int, dt
         fit_every=c.fit_every,
         fit_iters=c.fit_iters,
         fit_lr=c.fit_lr,
+        capacity=int(c.get("capacity", 256)),  # initial per-node buffer (grows in chunks of 128)
         dtype=dtype,
         device=device,
+        # scalable variants (dslearn.models.sparse; conf/model/gp_{window,sgpr,ssgp}.yaml)
+        variant=str(c.get("variant", "exact")),
+        **{k: c[k] for k in ("window", "inducing", "features", "seed") if c.get(k) is not None},
     )
 
 
