@@ -26,8 +26,18 @@ NON_KEYS = {"value", "episode", "seed", "run_dir", "job", "ov.seed"}
 REQUIRED = ["study", "consensus", "node", "model", "metric"]
 
 
+def _redundant_override(c: str, columns) -> bool:
+    """``ov.<key>`` of a gathered sweep that the results already carry as a column
+    (``ov.model`` -> ``model``, ``ov.consensus.omega`` -> ``omega``): not a separate key, so that
+    runs the study itself labels alike (e.g. ``individual`` under either ω) are pooled as before."""
+    if not c.startswith("ov."):
+        return False
+    k = c[3:]
+    return k in columns or k.split(".")[-1] in columns
+
+
 def key_columns(df: pd.DataFrame) -> list[str]:
-    keys = [c for c in df.columns if c not in NON_KEYS]
+    keys = [c for c in df.columns if c not in NON_KEYS and not _redundant_override(c, df.columns)]
     return REQUIRED + [c for c in keys if c not in REQUIRED]
 
 

@@ -155,3 +155,26 @@ def test_report_mean_std_over_seeds(tmp_path):
     assert lin["n_seeds"] == 3 and abs(lin["mean"] - 1.11) < 1e-12 and abs(lin["std"] - 0.1) < 1e-12
     assert "1.11 ± 0.1" in text
     assert (tmp_path / "track_err.png").is_file() and "\\begin{tabular}" in (tmp_path / "tables.tex").read_text()
+
+
+def test_overrides_that_duplicate_a_result_column_are_not_separate_keys():
+    """A gathered sweep carries ``ov.<key>`` columns; where the study already has the column
+    (``ov.consensus.omega`` -> ``omega``), runs the study labels alike are pooled, and the
+    Yu report's Table II layout (one column per model x fusion) stays well defined."""
+    import pandas as pd
+
+    from dslearn.report import summarize
+    from dslearn.plotting.yu import table_prediction
+
+    rows = []
+    for om, val in (("one", 1.0), ("nodes", 3.0)):
+        for node in ("sensor1", "sensor2"):
+            rows.append(dict(study="s", consensus="individual", omega="-", node=node, node_kind="sensor",
+                             model="gp", metric="pred_err", value=val, episode=0, seed=0,
+                             train_seen=1, iterations=0, **{"ov.consensus.omega": om, "ov.model.lengthscale": 2.0}))
+    s = summarize(pd.DataFrame(rows))
+    sens = s[s["node"] == "sensor1"]
+    assert len(sens) == 1 and sens["n"].iloc[0] == 2 and sens["mean"].iloc[0] == 2.0
+    assert "ov.model.lengthscale" in s.columns  # an override with no result column stays a key
+    tab = table_prediction(s)
+    assert list(tab["node"]) == ["sensor1", "sensor2", "avg"] and list(tab.columns) == ["node", "gp (ind.)"]
