@@ -178,3 +178,27 @@ def test_gp_fit_keeps_the_data(mean):
     gp.fit(iters=3, lr=0.05)
     after = gp.R[:, : gp.n] + gp.prior_mean(gp.X[:, : gp.n])
     assert torch.allclose(after * gp.mask[:, : gp.n, None], targets * gp.mask[:, : gp.n, None], atol=1e-12)
+
+
+def test_gp_save_load_grown_buffer_and_mismatch(tmp_path):
+    from dslearn.errors import DataFormatError
+
+    torch.manual_seed(0)
+    model = GPMotionModel(4, num_nodes=2, mean="identity", lengthscale=1.5, capacity=4)
+    for _ in range(9):  # grows past the initial buffer
+        x = torch.randn(2, 4, dtype=D)
+        model.add_data(x, x + 0.1 * torch.randn(2, 4, dtype=D))
+    p = tmp_path / "gp.pt"
+    model.save(p)
+    other = GPMotionModel(4, num_nodes=2, mean="identity", lengthscale=1.5)
+    other.load(p)
+    xq = torch.randn(2, 3, 4, dtype=D)
+    for a, b in zip(model.linearize(xq, CTX), other.linearize(xq, CTX)):  # mean, Jacobian, Q
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    with pytest.raises(ConfigError, match="2 nodes|3 nodes|does not match"):
+        GPMotionModel(4, num_nodes=3, mean="identity").load(p)
+    with pytest.raises(ConfigError, match="class"):
+        ConstantVelocity(1, 0.1).load(p)
+    torch.save({"X": 1}, tmp_path / "bad.pt")
+    with pytest.raises(DataFormatError):
+        other.load(tmp_path / "bad.pt")

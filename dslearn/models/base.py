@@ -68,7 +68,7 @@ class MotionModel(nn.Module, abc.ABC):
 
     def save(self, path: str | Path) -> None:
         """Save parameters and data: ``torch.save`` of ``{format, class, state_dict}`` (plain tensors)."""
-        torch.save({"format": "dslearn-motion-v1", "class": type(self).__name__, "state_dict": self.state_dict()}, path)
+        torch.save(self._checkpoint(), path)
 
     def load(self, path: str | Path) -> "MotionModel":
         """Load what :meth:`save` wrote with safe (weights-only) loading, and check that it matches
@@ -78,6 +78,16 @@ class MotionModel(nn.Module, abc.ABC):
             DataFormatError: the file is missing, not a weights-only checkpoint, or malformed.
             ConfigError: the checkpoint was saved by another model class or configuration.
         """
+        self.load_state_dict(self._read_checkpoint(path)["state_dict"])
+        return self
+
+    def _checkpoint(self, **extra: Tensor) -> dict:
+        """The saved form: ``{format, class, state_dict, **extra}`` (weights-only loadable)."""
+        return {"format": "dslearn-motion-v1", "class": type(self).__name__, "state_dict": self.state_dict(), **extra}
+
+    def _read_checkpoint(self, path: str | Path, extra: tuple[str, ...] = ()) -> dict:
+        """Safe-load ``path`` and check class, state-dict names and shapes, and that the
+        tensors named in ``extra`` are present. Returns the checkpoint dict (``state_dict`` set)."""
         from ..errors import ConfigError, DataFormatError
 
         try:
@@ -89,22 +99,27 @@ class MotionModel(nn.Module, abc.ABC):
         if isinstance(blob, dict) and blob.get("format") == "dslearn-motion-v1":
             if blob.get("class") != type(self).__name__:
                 raise ConfigError(f"{path}: saved by model class {blob.get('class')!r}, but the config builds {type(self).__name__!r}")
-            state = blob["state_dict"]
-        elif isinstance(blob, dict) and all(isinstance(v, torch.Tensor) for v in blob.values()):
-            state = blob  # a plain state dict (older files)
+            state = blob.get("state_dict")
+        elif isinstance(blob, dict) and not extra and all(isinstance(v, torch.Tensor) for v in blob.values()):
+            state, blob = blob, {"state_dict": blob}  # a plain state dict (older files)
         else:
-            raise DataFormatError(f"{path}: not a dslearn model file (expected a dict of tensors)")
+            raise DataFormatError(f"{path}: not a dslearn {type(self).__name__} file")
+        if not isinstance(state, dict):
+            raise DataFormatError(f"{path}: no state_dict in the model file")
+        absent = [k for k in extra if not isinstance(blob.get(k), torch.Tensor)]
+        if absent:
+            raise DataFormatError(f"{path}: model file lacks {absent}")
         own = self.state_dict()
-        missing, extra = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+        missing, unexpected = sorted(set(own) - set(state)), sorted(set(state) - set(own))
         shapes = [f"{k}: file {tuple(state[k].shape)} vs config {tuple(own[k].shape)}"
                   for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
-        if missing or extra or shapes:
+        if missing or unexpected or shapes:
             raise ConfigError(
                 f"{path} does not match the configured {type(self).__name__}: "
-                + "; ".join(filter(None, [f"missing {missing}" if missing else "", f"unexpected {extra}" if extra else "", *shapes]))
+                + "; ".join(filter(None, [f"missing {missing}" if missing else "",
+                                          f"unexpected {unexpected}" if unexpected else "", *shapes]))
             )
-        self.load_state_dict(state)
-        return self
+        return blob
 
 
 class ObservationModel(nn.Module, abc.ABC):

@@ -42,7 +42,30 @@ def _same_input(a: Tensor, b: Tensor, version: int) -> bool:
     return a.device.type == "cpu" and torch.equal(a, b)
 
 
-class OnlineGP(nn.Module):
+class PriorMean:
+    """Prior mean m(x) (zero / constant / identity) and its Jacobian, for GP classes with
+    ``mean_type``, ``output_dim``, ``input_dim`` (and ``constant`` for the constant mean).
+    Shapes ``(S, N, d) -> (S, N, Dy)`` and ``(S, N, Dy, d)``."""
+
+    mean_type: str
+    output_dim: int
+    input_dim: int
+
+    def prior_mean(self, x: Tensor) -> Tensor:
+        if self.mean_type == "identity":
+            return x[..., : self.output_dim]
+        if self.mean_type == "constant":
+            return self.constant.detach().unsqueeze(-2).expand(*x.shape[:-1], self.output_dim)
+        return x.new_zeros(*x.shape[:-1], self.output_dim)
+
+    def prior_mean_jacobian(self, x: Tensor) -> Tensor:
+        j = x.new_zeros(*x.shape[:-1], self.output_dim, self.input_dim)
+        if self.mean_type == "identity":
+            j[..., range(self.output_dim), range(self.output_dim)] = 1.0
+        return j
+
+
+class OnlineGP(PriorMean, nn.Module):
     r"""``S`` exact GPs with a shared RBF kernel per node, updated online.
 
     Prior :math:`f \sim \mathcal{GP}(m, k)`, :math:`k(a,b) = \sigma_f^2 \exp(-\|a-b\|^2 / 2l^2)`,
@@ -143,21 +166,6 @@ class OnlineGP(nn.Module):
             ls = self.covar_module.base_kernel.lengthscale.to(a)  # (S, 1, 1)
             d2 = torch.cdist(a / ls, b / ls).pow(2)  # matmul-based for large inputs: no (Na, Nb, d) tensor
             return self.covar_module.outputscale.to(a).reshape(-1, 1, 1) * torch.exp(-0.5 * d2)
-
-    def prior_mean(self, x: Tensor) -> Tensor:
-        """``(S, N, d) -> (S, N, Dy)``."""
-        if self.mean_type == "identity":
-            return x[..., : self.output_dim]
-        if self.mean_type == "constant":
-            return self.constant.detach().unsqueeze(-2).expand(*x.shape[:-1], self.output_dim)
-        return x.new_zeros(*x.shape[:-1], self.output_dim)
-
-    def prior_mean_jacobian(self, x: Tensor) -> Tensor:
-        """``(S, N, d) -> (S, N, Dy, d)``."""
-        j = x.new_zeros(*x.shape[:-1], self.output_dim, self.input_dim)
-        if self.mean_type == "identity":
-            j[..., range(self.output_dim), range(self.output_dim)] = 1.0
-        return j
 
     # online update -----------------------------------------------------------------------
     @torch.no_grad()
@@ -473,27 +481,39 @@ class GPMotionModel(MotionModel):
         return self
 
     def save(self, path) -> None:
+        """Save hyperparameters and the data set (inputs, residual targets, mask) of every node."""
         if type(self.gp) is not OnlineGP:
             raise NotImplementedError(f"save is implemented for model.variant=exact only (this is {self.variant})")
         n = self.gp.n
-        torch.save(
-            {
-                "state_dict": self.state_dict(),
-                "X": self.gp.X[:, :n].clone(),
-                "R": self.gp.R[:, :n].clone(),
-                "mask": self.gp.mask[:, :n].clone(),
-            },
-            path,
-        )
+        torch.save(self._checkpoint(X=self.gp.X[:, :n].clone(), R=self.gp.R[:, :n].clone(),
+                                    mask=self.gp.mask[:, :n].clone()), path)
 
     def load(self, path) -> "GPMotionModel":
-        blob = torch.load(path, weights_only=True)
+        """Safe-load what :meth:`save` wrote; checks class, hyperparameter shapes and that the
+        data set has this model's node count and dimensions, then refactorises once."""
+        from ..errors import ConfigError
+
+        if type(self.gp) is not OnlineGP:
+            raise NotImplementedError(f"load is implemented for model.variant=exact only (this is {self.variant})")
+        blob = self._read_checkpoint(path, extra=("X", "R", "mask"))
+        X, R, mask = blob["X"], blob["R"], blob["mask"]
+        s, _, d = self.gp.X.shape
+        o = self.gp.R.shape[-1]
+        n = X.shape[1] if X.dim() == 3 else -1
+        if (X.dim(), R.dim(), mask.dim()) != (3, 3, 2) or X.shape != (s, n, d) or R.shape != (s, n, o) \
+                or mask.shape != (s, n) or mask.dtype != torch.bool:
+            raise ConfigError(
+                f"{path}: GP data of shape X {tuple(X.shape)}, R {tuple(R.shape)}, mask {tuple(mask.shape)} does not "
+                f"match the configured model ({s} nodes, input dim {d}, output dim {o})"
+            )
         self.load_state_dict(blob["state_dict"])
-        n = blob["X"].shape[1]
         self.gp.reset()
         while self.gp.X.shape[1] < n:
             self.gp._grow()
-        self.gp.X[:, :n], self.gp.R[:, :n], self.gp.mask[:, :n] = blob["X"], blob["R"], blob["mask"]
+        dev = self.gp.X.device
+        self.gp.X[:, :n] = X.to(dev, self.gp.X.dtype)
+        self.gp.R[:, :n] = R.to(dev, self.gp.R.dtype)
+        self.gp.mask[:, :n] = mask.to(dev)
         self.gp.n = n
         self.gp.refactorize()
         return self
