@@ -30,7 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import ConfigError, check_choice, check_positive
-from .gp import MEANS, OnlineGP
+from .gp import MEANS, OnlineGP, PriorMean
 
 
 def chol_update(L: Tensor, v: Tensor) -> Tensor:
@@ -59,27 +59,6 @@ def chol_update(L: Tensor, v: Tensor) -> Tensor:
     excl = torch.sub(cs[..., -1:], cs, out=cs)  # sum_{k > j} L_ik p_k = row sum - inclusive prefix
     out = L * d.unsqueeze(-2)
     return out.addcmul_(excl, beta.unsqueeze(-2))
-
-
-class _MeanMixin:
-    """Prior mean (zero / constant / identity) shared by the variants."""
-
-    mean_type: str
-    output_dim: int
-    input_dim: int
-
-    def prior_mean(self, x: Tensor) -> Tensor:
-        if self.mean_type == "identity":
-            return x[..., : self.output_dim]
-        if self.mean_type == "constant":
-            return self.constant.detach().unsqueeze(-2).expand(*x.shape[:-1], self.output_dim)
-        return x.new_zeros(*x.shape[:-1], self.output_dim)
-
-    def prior_mean_jacobian(self, x: Tensor) -> Tensor:
-        j = x.new_zeros(*x.shape[:-1], self.output_dim, self.input_dim)
-        if self.mean_type == "identity":
-            j[..., range(self.output_dim), range(self.output_dim)] = 1.0
-        return j
 
 
 # ------------------------------------------------------------------------------------------
@@ -145,7 +124,7 @@ class WindowGP(OnlineGP):
 
 
 # ------------------------------------------------------------------------------------------
-class _SparseBase(_MeanMixin, nn.Module):
+class _SparseBase(PriorMean, nn.Module):
     def __init__(self, num_nodes, input_dim, output_dim, outputscale, lengthscale, noise_std, mean, dtype, device):
         super().__init__()
         check_positive("model.outputscale", outputscale)

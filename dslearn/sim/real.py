@@ -21,7 +21,7 @@ from torch import Tensor
 from ..errors import ConfigError, check_positive
 from ..types import agents
 from .network import SensorNetwork, make_network
-from .scenario import Episodes
+from .scenario import Episodes, measure  # noqa: F401  (re-exported: real-data studies measure with it)
 
 
 def scene_extent(xy: Tensor) -> tuple[float, float, float, float]:
@@ -86,21 +86,3 @@ def arena_network(
     except ConfigError as e:
         msg = str(e).replace("network.", "task.network.")
         raise ConfigError(msg + "; raise task.network.k_nearest" if "disconnected" in msg else msg) from None
-
-
-def measure(states: Tensor, network: SensorNetwork, generator: torch.Generator) -> Episodes:
-    """Range-limited noisy position measurements of true joint states.
-
-    The same draws as :meth:`dslearn.sim.scenario.SocialForceScenario.sample` makes after
-    simulating (noise ``(S, B, K+1, A, 2)`` from ``generator``, zeroed where not visible).
-
-    Args:
-        states: ``(B, K+1, 4A)`` true states.
-    Returns:
-        :class:`~dslearn.sim.scenario.Episodes`.
-    """
-    pos = agents(states)[..., :2]  # (B, K+1, A, 2)
-    vis = network.visible(pos)  # (S, B, K+1, A)
-    noise = network.meas_std * torch.randn((network.num_nodes, *pos.shape), generator=generator, dtype=pos.dtype)
-    meas = (pos.unsqueeze(0) + noise.to(pos.device)) * vis.unsqueeze(-1)
-    return Episodes(states, meas, vis)

@@ -100,9 +100,15 @@ class SocialForceScenario:
         for _ in range(k):
             x = self.sfm(x, ctx) + self.process_std * torch.randn(x.shape, generator=generator, dtype=x.dtype)
             traj.append(x)
-        states = torch.stack(traj, 1)  # (B, K+1, Dx)
-        pos = agents(states)[..., :2]  # (B, K+1, A, 2)
-        vis = network.visible(pos)  # (S, B, K+1, A)
-        noise = network.meas_std * torch.randn((network.num_nodes, *pos.shape), generator=generator, dtype=pos.dtype)
-        meas = (pos.unsqueeze(0) + noise) * vis.unsqueeze(-1)
-        return Episodes(states, meas, vis)
+        return measure(torch.stack(traj, 1), network, generator)
+
+
+def measure(states: Tensor, network: SensorNetwork, generator: torch.Generator) -> Episodes:
+    """Range-limited noisy position measurements of true joint states ``(B, K+1, 4A)``:
+    noise ``(S, B, K+1, A, 2)`` drawn from ``generator``, zeroed where a node does not see
+    the agent. Used for simulated and for real (ETH/UCY) trajectories alike."""
+    pos = agents(states)[..., :2]  # (B, K+1, A, 2)
+    vis = network.visible(pos)  # (S, B, K+1, A)
+    noise = network.meas_std * torch.randn((network.num_nodes, *pos.shape), generator=generator, dtype=pos.dtype)
+    meas = (pos.unsqueeze(0) + noise.to(pos.device)) * vis.unsqueeze(-1)
+    return Episodes(states, meas, vis)
