@@ -24,9 +24,8 @@ before every encoder and decoder step (the hidden states are those of the previo
 positions are observed ones in the encoder and predicted ones in the decoder).
 
 The hyperparameters (paper defaults) live in ``conf/lstm/default.yaml`` (config group
-``lstm``: ``+lstm=default`` until the root config lists it); the tracking studies
-(helper 3b's real-data studies, e.g. ``dslearn/studies/ethucy_tracking.py``) read ``cfg.lstm``; the forecasting
-study (``dslearn/studies/ethucy_forecast.py``) keeps its own copy under ``task.lstm``.
+``lstm``, used by ``dslearn-train-lstm``); the studies (``dslearn/studies/ethucy_tracking.py``,
+``dslearn/studies/ethucy_forecast.py``) keep their own copies under ``task.lstm``.
 
 Agents that are absent (NaN positions) in a window are masked: they are neither pooled
 nor counted in the loss, and their predictions are NaN.
