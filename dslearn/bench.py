@@ -31,7 +31,6 @@ Outputs in ``--out`` (default ``benchmarks/``): ``bench.csv``, ``bench.md`` (wit
 from __future__ import annotations
 
 import argparse
-import math
 import multiprocessing as mp
 import os
 import platform

@@ -24,3 +24,16 @@ def check_positive(field: str, value, *, strict: bool = True) -> None:
         raise ConfigError(f"{field}={value!r} must be a number") from None
     if v != v or (v <= 0 if strict else v < 0):
         raise ConfigError(f"{field}={value!r} must be {'> 0' if strict else '>= 0'}")
+
+
+def as_list(field: str, value, *, none_as_empty: bool = False) -> list:
+    """A config value as a list: a scalar becomes a one-element list; ``None`` becomes ``[]`` when
+    ``none_as_empty``; anything else that is not iterable raises :class:`ConfigError`."""
+    if value is None and none_as_empty:
+        return []
+    if isinstance(value, (str, int, float)):
+        return [value]
+    try:
+        return list(value)
+    except TypeError:
+        raise ConfigError(f"{field}={value!r} must be a list") from None

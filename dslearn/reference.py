@@ -26,8 +26,9 @@ import pandas as pd
 import torch
 from torch import Tensor
 
+from .errors import ConfigError
 from .models import GPMotionModel
-from .studies.yu import YuStudy, _resolve_device, _to, DTYPES
+from .studies.yu import YuStudy, _resolve_device, DTYPES
 from .tracker import TrackResult, tracking_metrics
 from .types import AGENT_DIM, safe_cholesky, spd_inverse
 
@@ -122,17 +123,14 @@ class ReferenceYu(YuStudy):
         torch.manual_seed(int(c.seed))
         scenario, network, model, obs, fusion = self.build()
         if obs.learnable or c.observation.name != "linear":
-            raise NotImplementedError("the reference implements observation=linear only")
+            raise ConfigError(f"observation.name={c.observation.name!r}: the reference implementation supports 'linear' only")
         if fusion.name not in ("individual", "hybrid", "cm", "ci", "centralized"):
-            raise NotImplementedError(f"the reference implements individual/hybrid/cm/ci/centralized, not {fusion.name}")
+            raise ConfigError(f"consensus.name={fusion.name!r}: the reference implementation supports individual, hybrid, cm, ci, centralized")
         if getattr(model, "fit_every", 0) or getattr(model, "variant", "exact") != "exact":
-            raise NotImplementedError("the reference implements the exact GP with fixed hyperparameters")
+            raise ConfigError("model: the reference implementation supports the exact GP with fixed hyperparameters only (variant=exact, fit_every=0)")
         dtype, device = DTYPES[c.dtype], _resolve_device(c.device)
         ctx = scenario.ctx()
-        seed = int(c.seed)
-        test = scenario.sample(c.data.test_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 1))
-        train = scenario.sample(c.data.train_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 2))
-        test, train = _to(test, dtype, device), _to(train, dtype, device)
+        test, train = self.sample(scenario, network, dtype, device)
         S = network.num_nodes
         if isinstance(model, GPMotionModel):
             mc = c.model

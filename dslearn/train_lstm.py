@@ -35,7 +35,7 @@ DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
 def _windows(names, part: str, cfg: DictConfig, length: int) -> torch.Tensor | None:
-    from .studies.ethucy_forecast import _cat_windows, _subsample
+    from .studies.ethucy_forecast import _cat_windows
 
     parts = []
     for n in names:

@@ -124,7 +124,7 @@ def test_result_tables(tmp_path):
 
 
 def test_trajectory_file_broken_line(tmp_path):
-    ethucy = pytest.importorskip("dslearn.data.ethucy")
+    from dslearn.data import ethucy
     p = tmp_path / "scene.txt"
     p.write_text("0 1 1.0 2.0\n10 1 1.5 2.5\n20 1 abc 3.0\n")
     with pytest.raises(DataFormatError, match=r"scene.txt:3: non-numeric field"):

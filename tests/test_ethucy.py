@@ -1,6 +1,5 @@
 """ETH/UCY loader: malformed files, round trip, real-data counts, dt rules, windows."""
 
-import math
 
 import numpy as np
 import pandas as pd
@@ -9,9 +8,7 @@ import torch
 
 from dslearn.data import ethucy
 from dslearn.data.ethucy import (
-    ALL_SCENES,
     SCENES,
-    Scene,
     default_root,
     fold_scenes,
     load_scene,

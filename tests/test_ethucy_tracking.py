@@ -13,7 +13,8 @@ from dslearn.data.episodes import _groups, extract_episodes, finite_difference_v
 from dslearn.errors import ConfigError
 from dslearn.models.social_force import SocialForce
 from dslearn.sim.network import is_connected
-from dslearn.sim.real import arena_network, measure, perimeter_positions, scene_extent
+from dslearn.sim.real import arena_network, perimeter_positions, scene_extent
+from dslearn.sim.scenario import measure
 from dslearn.studies import ethucy_tracking as et
 from dslearn.types import StepContext
 
@@ -295,7 +296,6 @@ def test_constant_velocity_mean_gp_falls_back_to_lin():
 
 
 def test_cm_fused_ignores_uninformed_nodes():
-    from dslearn.sim.scenario import Episodes
 
     ext = (0.0, 10.0, 0.0, 6.0)
     net = arena_network(ext, 4, k_nearest=2, sensing_range=3.0, meas_std=0.2)

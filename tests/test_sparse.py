@@ -170,3 +170,29 @@ def test_study_runs_each_variant_and_large_window_equals_exact():
         assert df["value"].notna().all() and len(df) == len(ref)
         te = df[df.metric == "track_err"]["value"].mean()
         assert te < 2 * ref[ref.metric == "track_err"]["value"].mean() + 0.05
+
+
+@pytest.mark.parametrize("variant,opts", [("window", dict(window=12)), ("sgpr", dict(inducing=10)), ("ssgp", dict(features=40))])
+def test_sparse_save_load_round_trip(tmp_path, variant, opts):
+    model = GPMotionModel(4, num_nodes=2, mean="identity", variant=variant, **HYP, **opts)
+    g = torch.Generator().manual_seed(5)
+    X = torch.randn(30, 2, 4, generator=g, dtype=D)
+    for i in range(30):
+        model.add_data(X[i], torch.tanh(X[i]))
+    p = tmp_path / f"{variant}.pt"
+    model.save(p)
+    other = GPMotionModel(4, num_nodes=2, mean="identity", variant=variant, **HYP, **opts).load(p)
+    x = torch.randn(2, 3, 4, generator=g, dtype=D)
+    for a, b in zip(model.linearize(x, CTX), other.linearize(x, CTX)):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-9)
+    exact = GPMotionModel(4, num_nodes=2, mean="identity", variant="exact", **HYP)
+    if variant == "window":  # the window's data set is an exact GP's data set: same posterior
+        exact.load(p)
+        torch.testing.assert_close(exact(x, CTX), model(x, CTX), rtol=0, atol=1e-9)
+    else:  # sufficient statistics are not a data set: refused with the reason
+        with pytest.raises(Exception, match="lacks"):
+            exact.load(p)
+    # another size is refused with the reason
+    small = dict(window=5) if variant == "window" else dict(inducing=4) if variant == "sgpr" else dict(features=8)
+    with pytest.raises(ConfigError, match="does not match|more than"):
+        GPMotionModel(4, num_nodes=2, mean="identity", variant=variant, **HYP, **small).load(p)

@@ -16,7 +16,6 @@ exactly nothing to predictions.
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import gpytorch
@@ -481,20 +480,29 @@ class GPMotionModel(MotionModel):
         return self
 
     def save(self, path) -> None:
-        """Save hyperparameters and the data set (inputs, residual targets, mask) of every node."""
-        if type(self.gp) is not OnlineGP:
-            raise NotImplementedError(f"save is implemented for model.variant=exact only (this is {self.variant})")
+        """Save hyperparameters and the posterior state of every node: the data set (inputs,
+        residual targets, mask) for the exact and window GPs, the sufficient statistics for
+        SGPR / SSGP (:meth:`~dslearn.models.sparse.SSGP.state_tensors`)."""
+        if not isinstance(self.gp, OnlineGP):
+            sparse = {f"sparse.{k}": v for k, v in self.gp.state_tensors().items()}
+            torch.save(self._checkpoint(**sparse), path)
+            return
         n = self.gp.n
         torch.save(self._checkpoint(X=self.gp.X[:, :n].clone(), R=self.gp.R[:, :n].clone(),
                                     mask=self.gp.mask[:, :n].clone()), path)
 
     def load(self, path) -> "GPMotionModel":
         """Safe-load what :meth:`save` wrote; checks class, hyperparameter shapes and that the
-        data set has this model's node count and dimensions, then refactorises once."""
+        saved state has this model's node count, dimensions and variant; the exact and window
+        GPs refactorise once."""
         from ..errors import ConfigError
 
-        if type(self.gp) is not OnlineGP:
-            raise NotImplementedError(f"load is implemented for model.variant=exact only (this is {self.variant})")
+        if not isinstance(self.gp, OnlineGP):
+            names = self.gp.state_tensors().keys()
+            blob = self._read_checkpoint(path, extra=tuple(f"sparse.{k}" for k in names))
+            self.load_state_dict(blob["state_dict"])
+            self.gp.load_state_tensors({k: blob[f"sparse.{k}"] for k in names}, str(path))
+            return self
         blob = self._read_checkpoint(path, extra=("X", "R", "mask"))
         X, R, mask = blob["X"], blob["R"], blob["mask"]
         s, _, d = self.gp.X.shape
@@ -506,6 +514,9 @@ class GPMotionModel(MotionModel):
                 f"{path}: GP data of shape X {tuple(X.shape)}, R {tuple(R.shape)}, mask {tuple(mask.shape)} does not "
                 f"match the configured model ({s} nodes, input dim {d}, output dim {o})"
             )
+        window = getattr(self.gp, "window", None)
+        if window is not None and n > window:
+            raise ConfigError(f"{path}: holds {n} points per node, more than model.window={window}")
         self.load_state_dict(blob["state_dict"])
         self.gp.reset()
         while self.gp.X.shape[1] < n:

@@ -24,7 +24,6 @@ no-op update.
 
 from __future__ import annotations
 
-import math
 
 import torch
 from torch import Tensor, nn
@@ -145,6 +144,32 @@ class _SparseBase(PriorMean, nn.Module):
         self._noise = torch.full((s,), float(noise_std) ** 2, **kw)
         self.n = 0
 
+    #: posterior state tensors of the variant (besides the hyperparameters), see state_tensors
+    STATE: tuple[str, ...] = ()
+
+    def state_tensors(self) -> dict[str, Tensor]:
+        """The whole posterior (hyperparameters, the variant's ``STATE``, point count) as plain
+        tensors, for :meth:`GPMotionModel.save`."""
+        out = {k: getattr(self, k).clone() for k in ("_sf2", "_ls", "_noise", *self.STATE)}
+        out["n"] = torch.tensor(self.n)
+        return out
+
+    def load_state_tensors(self, state: dict[str, Tensor], source: str = "model file") -> None:
+        """Inverse of :meth:`state_tensors`; every tensor must have this model's shape and dtype kind."""
+        for k in ("_sf2", "_ls", "_noise", *self.STATE):
+            cur, v = getattr(self, k), state[k]
+            if v.shape != cur.shape or v.dtype.is_floating_point != cur.dtype.is_floating_point:
+                raise ConfigError(f"{source}: {type(self).__name__} state {k!r} of shape {tuple(v.shape)} does not "
+                                  f"match the configured model ({tuple(cur.shape)})")
+        for k in ("_sf2", "_ls", "_noise", *self.STATE):
+            cur = getattr(self, k)
+            setattr(self, k, state[k].to(cur.device, cur.dtype))
+        self.n = int(state["n"])
+        self._invalidate()
+
+    def _invalidate(self) -> None:
+        """Drop caches derived from the state (after it was replaced)."""
+
     @property
     def noise_var(self) -> Tensor:
         return self._noise
@@ -188,6 +213,11 @@ class SSGP(_SparseBase):
     Jacobian :math:`\partial m/\partial x + (\partial\phi/\partial x)^T \mu` in closed form.
     The frequencies are drawn once from ``seed`` and shared by all nodes.
     """
+
+    STATE = ("omega", "Lc", "b")
+
+    def _invalidate(self) -> None:
+        self._mu = None
 
     def __init__(self, num_nodes, input_dim, output_dim, outputscale=1.0, lengthscale=2.0, noise_std=0.5,
                  mean="zero", features: int = 200, seed: int = 0, dtype=torch.float64, device="cpu"):
@@ -285,6 +315,11 @@ class SGPR(_SparseBase):
     :math:`k_{xx} - k_{xu}K_{uu}^{-1}k_{ux} + k_{xu}\Sigma^{-1}k_{ux}`; Jacobian in closed form
     (RBF kernel, as for :class:`OnlineGP` with :math:`\alpha = \Sigma^{-1} b` and ``X = Z``).
     """
+
+    STATE = ("Z", "Rz", "zmask", "Lu", "Ls", "b")
+
+    def _invalidate(self) -> None:
+        self._c = None
 
     def __init__(self, num_nodes, input_dim, output_dim, outputscale=1.0, lengthscale=2.0, noise_std=0.5,
                  mean="zero", inducing: int = 128, jitter: float = 1e-8, dtype=torch.float64, device="cpu"):

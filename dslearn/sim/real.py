@@ -19,9 +19,7 @@ import torch
 from torch import Tensor
 
 from ..errors import ConfigError, check_positive
-from ..types import agents
 from .network import SensorNetwork, make_network
-from .scenario import Episodes, measure  # noqa: F401  (re-exported: real-data studies measure with it)
 
 
 def scene_extent(xy: Tensor) -> tuple[float, float, float, float]:

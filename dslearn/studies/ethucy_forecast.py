@@ -42,7 +42,6 @@ test pedestrian-windows of that scene (the benchmark's number); metrics ``ade``,
 from __future__ import annotations
 
 import logging
-import math
 import time
 from pathlib import Path
 
@@ -56,7 +55,6 @@ from ..data.ethucy import SCENES, fold_scenes, load_scene, split_scene, windows
 from ..errors import ConfigError, check_choice, check_positive
 from ..models.gp import GPMotionModel, OnlineGP
 from ..models.lstm import SocialLSTM, train_lstm
-from ..types import StepContext
 
 log = logging.getLogger(__name__)
 
@@ -304,7 +302,6 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     for s in t.scenes:
         needed |= set(fold_scenes(s)[1])
     scenes = {name: load_scene(name, root=root, convention=str(t.convention)) for name in sorted(needed)}
-    dts = {sc.dt for sc in scenes.values()}
     test_w, train_w, val_w, quads = {}, {}, {}, {}
     for name, sc in scenes.items():
         if name in t.scenes:

@@ -44,24 +44,24 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
 
 import numpy as np
 import pandas as pd
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from torch import Tensor
 
 from ..consensus.fusion import FUSIONS, Fusion, make_fusion
 from ..consensus.weights import consensus_weights
-from ..data.episodes import CRITERIA, SPLITS, EpisodeSet, extract_episodes, split_episodes
-from ..errors import ConfigError, check_choice, check_positive
+from ..data.episodes import CRITERIA, SPLITS, extract_episodes, split_episodes
+from ..errors import ConfigError, as_list, check_choice, check_positive
 from ..models import ConstantVelocity, LinearPositionObservation
 from ..models.base import MotionModel
 from ..models.gp import OnlineGP
 from ..models.social_force import social_force_acceleration
 from ..sim.network import SensorNetwork
-from ..sim.real import arena_network, measure, scene_extent
+from ..sim.real import arena_network, scene_extent
+from ..sim.scenario import measure
 from ..sim.scenario import Episodes
 from ..tracker import initial_belief, prediction_error, track, tracking_metrics
 from ..types import JITTER, POS, VEL, StepContext, agents, joint, safe_cholesky
@@ -209,17 +209,6 @@ def _int(field, v, minimum=1):
     return int(v)
 
 
-def _list(field, v):
-    if v is None:
-        return []
-    if isinstance(v, (str, int, float)):
-        return [v]
-    try:
-        return list(v)
-    except TypeError:
-        raise ConfigError(f"{field}={v!r} must be a list") from None
-
-
 def validate(cfg: DictConfig) -> None:
     """Check ``cfg.task`` (and the groups it uses) before any work; ConfigError names the field."""
     t = cfg.task
@@ -229,7 +218,7 @@ def validate(cfg: DictConfig) -> None:
     if dev.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError("device=cuda was asked for but no CUDA device is available; use device=cpu")
     check_choice("task.protocol", t.protocol, PROTOCOLS)
-    models = _list("task.models", t.models)
+    models = as_list("task.models", t.models, none_as_empty=True)
     if not models:
         raise ConfigError("task.models must name at least one of " + str(list(MODELS)))
     for m in models:
@@ -239,7 +228,7 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError("task.models must contain 'lstm' and 'gp' (or 'gp_cv') for task.protocol=data_size")
     from ..data.ethucy import ALL_SCENES
 
-    scenes = _list("task.scenes", t.scenes)
+    scenes = as_list("task.scenes", t.scenes, none_as_empty=True)
     for s in scenes:
         check_choice("task.scenes", s, tuple(ALL_SCENES))
     if not scenes and not (t.protocol == "data_size" and t.get("synthetic", False)):
@@ -278,12 +267,12 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"task.sfm.desired_steps={s.desired_steps} must be <= task.steps + 1")
     _int("task.sfm.refine_iters", s.refine_iters, 0)
     for k in ("tau", "beta"):
-        vals = _list(f"task.sfm.grid.{k}", s.grid[k])
+        vals = as_list(f"task.sfm.grid.{k}", s.grid[k], none_as_empty=True)
         if not vals:
             raise ConfigError(f"task.sfm.grid.{k} must not be empty")
         for v in vals:
             check_positive(f"task.sfm.grid.{k}", v)
-    for v in _list("task.sfm.grid.alpha", s.grid.alpha) or [None]:
+    for v in as_list("task.sfm.grid.alpha", s.grid.alpha, none_as_empty=True) or [None]:
         check_positive("task.sfm.grid.alpha", v, strict=False)
     lstm = t.lstm
     for k in ("embed", "hidden", "obs_len", "pred_len", "epochs", "batch_size"):
@@ -296,7 +285,7 @@ def validate(cfg: DictConfig) -> None:
             f"= {t.steps + 1} (the LSTM's training windows are cut from the episodes)"
         )
     if t.protocol == "data_size":
-        sizes = _list("task.data_sizes", t.data_sizes)
+        sizes = as_list("task.data_sizes", t.data_sizes, none_as_empty=True)
         if not sizes:
             raise ConfigError("task.data_sizes must list at least one number of training episodes")
         for v in sizes:
@@ -576,8 +565,15 @@ def trajectory_rows(model, src: Data, per_node: bool, n: int, **keys) -> pd.Data
             roll = model.rollout(x0.unsqueeze(0).expand(src.network.num_nodes, *x0.shape).contiguous(), k, src.ctx)[0]
         else:
             roll = model.rollout(x0, k, src.ctx)
-    traj = torch.cat([x0.unsqueeze(1), roll], 1)[:n]  # (n, K+1, Dx)
-    pos = agents(traj)[..., POS].detach().cpu().double().numpy()  # (n, K+1, A, 2)
+    return position_rows(torch.cat([x0.unsqueeze(1), roll], 1), src, n, **keys)
+
+
+def position_rows(traj: Tensor, src: Data, n: int, **keys) -> pd.DataFrame:
+    """Rows ``pred_x``/``pred_y`` (node ``sensor1``, ``node_kind`` trajectory) of the positions in
+    the first ``n`` joint-state trajectories ``traj (B, K+1, Dx)``."""
+    if n <= 0:
+        return pd.DataFrame()
+    pos = agents(traj[:n])[..., POS].detach().cpu().double().numpy()  # (n, K+1, A, 2)
     b, k1, a, _ = pos.shape
     ep, step, ag = np.meshgrid(np.arange(b), np.arange(k1), np.arange(a), indexing="ij")
     frames = []
@@ -592,24 +588,6 @@ def trajectory_rows(model, src: Data, per_node: bool, n: int, **keys) -> pd.Data
     for i, (kk, v) in enumerate(keys.items()):
         df.insert(i, kk, v)
     return df
-
-
-class _Truth(MotionModel):
-    """Replays the test truth (so the figure's truth rows come from the same code path)."""
-
-    def __init__(self, states: Tensor):
-        super().__init__()
-        self.states = states
-        self.state_dim = states.shape[-1]
-
-    def forward(self, x, ctx):  # pragma: no cover - rollout is overridden
-        raise NotImplementedError
-
-    def noise_cov(self, x, ctx):  # pragma: no cover
-        raise NotImplementedError
-
-    def rollout(self, x0, steps, ctx):
-        return self.states[: x0.shape[0], 1 : steps + 1]
 
 
 # --------------------------------------------------------------------------------------------
@@ -647,7 +625,7 @@ def protocol_tables(cfg: DictConfig, data: Data, seed: int, dtype, device) -> pd
     for k, v in cover.items():  # fraction of (test episode, step, pedestrian) seen by >= 1 sensor; episodes available
         add("-", "-", pd.DataFrame({"node": ["avg"], "node_kind": ["param"], "episode": [0], "metric": [k], "value": [float(v)], **{kk: [vv] for kk, vv in base.items()}}))
     if n_plot:
-        add("truth", "-", trajectory_rows(_Truth(data.test.states), data, False, n_plot, **base))
+        add("truth", "-", position_rows(data.test.states, data, n_plot, **base))
     if "lin" in models:
         t0 = time.perf_counter()
         lin = ConstantVelocity(data.num_agents, float(t.lin.noise_std))

@@ -18,7 +18,7 @@ import torch
 from ..dgpt.aggregation import AGGREGATIONS
 from ..dgpt.scenarios import SCENARIOS, generate, measure, sensor_field
 from ..dgpt.tracker import GP_INPUTS, OPTIMISERS, HyperConfig, track
-from ..errors import ConfigError, check_choice, check_positive
+from ..errors import ConfigError, as_list, check_choice, check_positive
 
 TASK = "liu_dgpt"
 METRICS = ("nrmse_x_updated", "nrmse_y_updated", "nrmse_x_predictive", "nrmse_y_predictive")
@@ -26,15 +26,6 @@ METRICS = ("nrmse_x_updated", "nrmse_y_updated", "nrmse_x_predictive", "nrmse_y_
 
 def _get(t, key, default=None):
     return t.get(key, default) if hasattr(t, "get") else default
-
-
-def _as_list(field, v):
-    if isinstance(v, (str, int, float)):
-        return [v]
-    try:
-        return list(v)
-    except TypeError:
-        raise ConfigError(f"{field}={v!r} must be a list") from None
 
 
 def _int(field, v, minimum=1):
@@ -88,7 +79,7 @@ def _selection(cfg, t) -> dict:
     nz = _get(cfg, "noise")
     if nz is not None:
         sel["noises"] = [nz] if isinstance(nz, (int, float)) and not isinstance(nz, bool) else nz
-        for n in _as_list("noise", sel["noises"]):
+        for n in as_list("noise", sel["noises"]):
             check_positive("noise", n)
     tk = _group_name(cfg, "tracker")
     if tk is not None:
@@ -112,18 +103,18 @@ def validate(cfg) -> dict:
     p = {}
     p["gp_input"] = sel.get("gp_input", _get(t, "gp_input", "temporal"))
     check_choice("task.gp_input", p["gp_input"], GP_INPUTS)
-    p["scenarios"] = [str(s) for s in _as_list("task.scenarios", sel.get("scenarios", _get(t, "scenarios", SCENARIOS)))]
+    p["scenarios"] = [str(s) for s in as_list("task.scenarios", sel.get("scenarios", _get(t, "scenarios", SCENARIOS)))]
     if not p["scenarios"]:
         raise ConfigError(f"task.scenarios must not be empty; choose from {list(SCENARIOS)}")
     for s in p["scenarios"]:
         check_choice("task.scenarios", s, SCENARIOS)
-    p["noises"] = _as_list("task.noises", sel.get("noises", _get(t, "noises", [1.0, 2.0, 4.0])))
+    p["noises"] = as_list("task.noises", sel.get("noises", _get(t, "noises", [1.0, 2.0, 4.0])))
     if not p["noises"]:
         raise ConfigError("task.noises must not be empty")
     for n in p["noises"]:
         check_positive("task.noises", n)
     p["noises"] = [float(n) for n in p["noises"]]
-    p["aggregations"] = [str(a) for a in _as_list("task.aggregations", sel.get("aggregations", _get(t, "aggregations", AGGREGATIONS)))]
+    p["aggregations"] = [str(a) for a in as_list("task.aggregations", sel.get("aggregations", _get(t, "aggregations", AGGREGATIONS)))]
     if not p["aggregations"] and "aggregations" not in sel:
         raise ConfigError(f"task.aggregations must not be empty; choose from {list(AGGREGATIONS)}")
     for a in p["aggregations"]:

@@ -18,10 +18,10 @@ from typing import Any
 
 import pandas as pd
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from ..consensus.fusion import FUSIONS, Fusion, make_fusion
+from ..consensus.fusion import FUSIONS, make_fusion
 from ..consensus.weights import consensus_weights
 from ..errors import ConfigError, check_choice, check_positive
 from ..models import (
@@ -212,6 +212,14 @@ class YuStudy:
         return scenario, network, model, obs, fusion
 
     # running -----------------------------------------------------------------------------
+    def sample(self, scenario: SocialForceScenario, network: SensorNetwork, dtype, device):
+        """The (test, train) episodes of this run, on ``device`` in ``dtype``. Separate seeded
+        streams, so the test set is the same whatever the training size."""
+        seed, d = int(self.cfg.seed), self.cfg.data
+        test = scenario.sample(d.test_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 1))
+        train = scenario.sample(d.train_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 2))
+        return _to(test, dtype, device), _to(train, dtype, device)
+
     def run(self, progress: bool = False) -> pd.DataFrame:
         """Train online on the training episodes, evaluate on the test episodes.
 
@@ -224,11 +232,7 @@ class YuStudy:
         scenario, network, model, obs, fusion = self.build()
         dtype, device = DTYPES[c.dtype], _resolve_device(c.device)
         ctx = scenario.ctx()
-        seed = int(c.seed)
-        # separate streams: the test set is the same whatever the training size
-        test = scenario.sample(c.data.test_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 1))
-        train = scenario.sample(c.data.train_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 2))
-        test, train = _to(test, dtype, device), _to(train, dtype, device)
+        test, train = self.sample(scenario, network, dtype, device)
         centre = torch.tensor([(scenario.area[0] + scenario.area[1]) / 2, (scenario.area[2] + scenario.area[3]) / 2], dtype=dtype, device=device)
         pooled = fusion.name == "centralized"
 
