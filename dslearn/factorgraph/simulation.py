@@ -3,7 +3,13 @@ r"""Monte Carlo engine: identification + EKF-FG tracking and the baselines on th
 Everything is vectorised over a grid of ``C`` configurations (``sigma_y``, number of FG
 iterations) and ``B`` Monte Carlo runs; only the ``K`` timings are a Python loop. The truth
 trajectories and the standard-normal sensor noise are shared by all configurations (common
-random numbers), the noise is scaled by each configuration's ``sigma_y``.
+random numbers), the noise is scaled by each configuration's ``sigma_y``. Every computation
+is per run (no reduction over ``B``), so a run's results do not depend on the other runs of
+its batch; :func:`~dslearn.factorgraph.scenario.run_noise` gives each run its own stream.
+
+:class:`TrackerSettings`' defaults are the paper's equations (``obs_var="crlb"``, no gate,
+flooding, scalar graph); the study's configuration (``conf/task/jiang_fg.yaml``) switches the
+tracker to ``obs_var="convergence"``.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ from torch import Tensor
 from .centralized import cv_predict, gauss_newton, iterated_ekf_update
 from .crlb import crlb
 from .identification import compress_measurements, identify
-from .tracking import TrackState, ekf_fg_step, predict
+from .tracking import TrackState, ekf_fg_step, observation_variance, predict
 
 
 @dataclass
@@ -30,12 +36,18 @@ class TrackerSettings:
     init_var: float = 100.0
     prior_var: float = float("inf")
     relinearize: bool = False
+    schedule: str = "flooding"               # "flooding" (paper) | "sequential" (one parameter at a time)
+    damping: float = 0.0                     # zeta damping d: (1-d) new + d old (0 = paper)
+    graph: str = "scalar"                    # "scalar" (paper, Fig. 1) | "joint" (one vector node: Gauss-Newton FG)
+    taylor_point: str = "prediction"         # first expansion point: "prediction" (paper) | "guess" (= the start)
     measurement_var: str = "sample"          # "sample" | "known"
     crlb_form: str = "trace_inverse"          # "trace_inverse" (Eq. 27) | "paper_eq33"
     initial_state: tuple[float, ...] = (2.0, -2.0)
     initial_state_var: float = 10.0
     initial_gradient_var: float = 10.0
     process_var: float = 1.0
+    obs_var: str = "crlb"                    # "crlb" (paper: sigma_e^2 = CRLB) | "convergence" (+ last FG step^2)
+    gate: float | None = None                # innovation gate on the FG output (None = paper, no gate)
     gradient_var: float = 0.01
     baseline_iters: int = 3
     lambda_tol: float = 1e-8
@@ -50,7 +62,8 @@ class SimulationOutput:
     fg_iter_sqerr: Tensor     # (T+1, C, B, K) identification squared error per parameter (mean over M) after t iters
     estimates: dict = field(default_factory=dict)  # name -> (C, B, K, M)
     crlb_truth: Tensor = None  # (C, B, K) per-parameter CRLB at the true state (Eq. 27)
-    obs_var: Tensor = None     # (C, B, K) sigma_e^2 used by EKF-FG (CRLB at the prediction)
+    obs_var: Tensor = None     # (C, B, K) sigma_e^2 used by EKF-FG (mean over M)
+    gated: Tensor = None       # (C, B) count of gated (inflated) FG outputs over timings and parameters
     near_zero_lambda: Tensor = None  # (C, B) count over timings
     floored: Tensor = None           # (C, B)
     iters_to_converge: Tensor = None  # (C, B, K) at the config's full T_max iterations
@@ -100,6 +113,7 @@ def simulate(
     crlb_true, obs_vars, conv = [], [], []
     near_zero = torch.zeros(C, B, dtype=torch.long, device=dev)
     floored = torch.zeros(C, B, dtype=torch.long, device=dev)
+    gated = torch.zeros(C, B, dtype=torch.long, device=dev)
     cidx = torch.arange(C, device=dev)
     for k in range(K):
         xk = truth[:, k]                                            # (B, M)
@@ -110,12 +124,17 @@ def simulate(
         ym, yv = compress_measurements(
             samples, None if settings.measurement_var == "sample" else sig_cb.square())
         start = x_pred if settings.init_guess_mode == "prediction" else guess
-        ident = identify(h, ym, yv, x_pred, start, T, init_var=settings.init_var, prior_var=settings.prior_var,
-                         relinearize=settings.relinearize, lambda_tol=settings.lambda_tol, tol=settings.converge_tol)
+        beta = x_pred if settings.taylor_point == "prediction" else torch.broadcast_to(start, x_pred.shape)
+        ident = identify(h, ym, yv, beta, start, T, init_var=settings.init_var, prior_var=settings.prior_var,
+                         relinearize=settings.relinearize, lambda_tol=settings.lambda_tol, tol=settings.converge_tol,
+                         schedule=settings.schedule, damping=settings.damping, graph=settings.graph)
         eta = ident.mean[num_iters, cidx]                           # (C, B, M): output after t_c iterations
-        obs_var = crlb(h, x_pred, sig_cb, L, settings.crlb_form)    # sigma_e^2 (Eq. 5, 27/33)
-        st = ekf_fg_step(st, eta, obs_var.unsqueeze(-1), settings.process_var, settings.gradient_var,
+        bound = crlb(h, x_pred, sig_cb, L, settings.crlb_form)      # the paper's sigma_e^2 (Eq. 5, 27/33)
+        obs_var, gated_k = observation_variance(bound, eta, ident.mean[num_iters - 1, cidx], x_pred, P_pred,
+                                                settings.obs_var, settings.gate)
+        st = ekf_fg_step(st, eta, obs_var, settings.process_var, settings.gradient_var,
                          x_pred=x_pred, P_pred=P_pred)
+        gated += gated_k.sum(-1)
         fg_sq.append((ident.mean - xk).square().mean(-1))          # (T+1, C, B)
         near_zero += ident.near_zero_lambda
         floored += ident.floored
@@ -125,7 +144,7 @@ def simulate(
         gn = gauss_newton(h, samples, z_pred[..., :M], settings.baseline_iters)
         z, P = iterated_ekf_update(h, samples, sig_cb, z_pred, P_pred_c, settings.baseline_iters)
         crlb_true.append(crlb(h, xk.expand(C, B, M), sig_cb, L, "trace_inverse"))
-        obs_vars.append(obs_var)
+        obs_vars.append(obs_var.mean(-1))
         for name, val in (("prediction", x_pred), ("fg_identification", eta), ("ekf_fg", st.x_mean),
                           ("centralized_gn", gn), ("centralized_ekf", z[..., :M])):
             est[name].append(val)
@@ -137,5 +156,6 @@ def simulate(
         obs_var=torch.stack(obs_vars, -1),
         near_zero_lambda=near_zero,
         floored=floored,
+        gated=gated,
         iters_to_converge=torch.stack(conv, -1),
     )

@@ -8,7 +8,14 @@ One run computes all four figures' grids, vectorised over configurations and Mon
 * ``fig3``: estimates vs truth over time (first ``figures.fig3_episodes`` episodes), ``metric = estimate``.
 * ``fig4``: RMSE per timing index.
 * ``fig5``: RMSE averaged over timings vs ``sigma_y``.
-* ``diag``: near-zero slopes (skipped sensors), precision floors, iterations to converge.
+* ``diag``: near-zero slopes (skipped sensors), precision floors, iterations to converge,
+  the EKF-FG observation variance and the fraction of gated FG outputs.
+
+``variant`` is ``default`` for the main grid (the settings of ``conf/task/jiang_fg.yaml``) or
+the name of an ablation (``task.ablations``), run on the same data; ``paper`` is the paper's
+EKF-FG (``sigma_e^2`` = CRLB at the prediction). Monte Carlo run ``r`` draws its truth and
+noise from its own stream seeded by ``(seed, r)`` (:func:`~dslearn.factorgraph.scenario.run_noise`),
+so its rows do not depend on ``task.mc_runs``.
 
 ``rmse`` rows hold one episode's root-mean-square error per parameter (mean over the M
 parameters and, where ``timing = -1``, over all timings). The report pools episodes as
@@ -30,13 +37,16 @@ from omegaconf import DictConfig, OmegaConf
 
 from ..errors import ConfigError, check_choice, check_positive
 from ..factorgraph.crlb import CRLB_FORMS
-from ..factorgraph.scenario import SquaredRange, polynomial_trajectory
+from ..factorgraph.identification import GRAPHS, SCHEDULES
+from ..factorgraph.scenario import SquaredRange, polynomial_trajectory, run_noise
 from ..factorgraph.simulation import TrackerSettings, simulate
+from ..factorgraph.tracking import OBS_VAR_MODES
 
 MODELS = ("fg_identification", "ekf_fg", "centralized_gn", "centralized_ekf")
 CONSENSUS = {"fg_identification": "gaussian_bp", "ekf_fg": "gaussian_bp", "centralized_gn": "centralized",
              "centralized_ekf": "centralized", "crlb": "-", "truth": "-"}
 NODE = "fusion_center"
+MAIN = "default"   # variant label of the main grid (the settings of conf/task/jiang_fg.yaml)
 
 
 # ----------------------------------------------------------------------------- config
@@ -101,6 +111,10 @@ def validate(task: DictConfig) -> dict:
         check_positive(f"task.tracker.{key}", tr.get(key))
     for key in ("process_var", "gradient_var"):
         check_positive(f"task.tracker.{key}", tr.get(key), strict=False)
+    fg = {"schedule": "flooding", "damping": 0.0, "graph": "scalar", "taylor_point": "prediction", **fg}
+    tr = {"obs_var": "crlb", "gate": None, **tr}
+    _check_variant("task.fg", fg)
+    _check_variant("task.tracker", tr)
     p["baseline_iters"] = _int("task.baseline_iters", t.get("baseline_iters"), 1)
     figs = t.get("figures") or {}
     its = figs.get("fig2_iterations")
@@ -123,6 +137,8 @@ def validate(task: DictConfig) -> dict:
         initial_gradient_var=float(tr["initial_gradient_var"]), process_var=float(tr["process_var"]),
         gradient_var=float(tr["gradient_var"]), baseline_iters=p["baseline_iters"],
         lambda_tol=float(fg["lambda_tol"]), converge_tol=float(fg["converge_tol"]),
+        schedule=fg["schedule"], damping=float(fg["damping"]), graph=fg["graph"], taylor_point=fg["taylor_point"],
+        obs_var=tr["obs_var"], gate=None if tr["gate"] is None else float(tr["gate"]),
     )
     p["settings"] = settings
     p["ablations"] = {}
@@ -130,12 +146,38 @@ def validate(task: DictConfig) -> dict:
     for name, over in (t.get("ablations") or {}).items():
         if not isinstance(over, dict) or not set(over) <= allowed:
             raise ConfigError(f"task.ablations.{name}={over!r}: keys must be among {sorted(allowed)}")
-        if "init_guess_mode" in over:
-            check_choice(f"task.ablations.{name}.init_guess_mode", over["init_guess_mode"], ["fixed", "prediction"])
+        _check_variant(f"task.ablations.{name}", over)
         over = dict(over)
+        if "init_guess" in over:
+            over["init_guess"] = tuple(_floats(f"task.ablations.{name}.init_guess", over["init_guess"], M))
+        if "prior_var" in over:
+            over["prior_var"] = float("inf") if over["prior_var"] is None else float(over["prior_var"])
         its_ab = _int(f"task.ablations.{name}.max_iter", over.pop("max_iter", p["max_iter"]), 1)
         p["ablations"][str(name)] = ({**settings, **over}, its_ab)
     return p
+
+
+def _check_variant(prefix: str, d: dict) -> None:
+    """The choice / range fields of the FG and tracker settings (main config or one ablation)."""
+    choices = {"init_guess_mode": ["fixed", "prediction"], "relinearize": [True, False],
+               "measurement_var": ["sample", "known"], "crlb_form": list(CRLB_FORMS), "schedule": list(SCHEDULES),
+               "graph": list(GRAPHS), "taylor_point": ["prediction", "guess"], "obs_var": list(OBS_VAR_MODES)}
+    for key, allowed in choices.items():
+        if key in d:
+            check_choice(f"{prefix}.{key}", d[key], allowed)
+    if "damping" in d:
+        try:
+            ok = 0.0 <= float(d["damping"]) < 1.0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ConfigError(f"{prefix}.damping={d['damping']!r} must be a number in [0, 1)")
+    if d.get("gate") is not None:
+        check_positive(f"{prefix}.gate", d["gate"])
+    for key in ("init_var", "prior_var", "process_var", "gradient_var", "initial_state_var", "initial_gradient_var",
+                "lambda_tol", "converge_tol"):
+        if d.get(key) is not None:
+            check_positive(f"{prefix}.{key}", d[key], strict=key not in ("process_var", "gradient_var", "lambda_tol"))
 
 
 # ----------------------------------------------------------------------------- rows
@@ -165,16 +207,20 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     device = torch.device(str(cfg.get("device", "cpu")))
     check_choice("dtype", str(cfg.get("dtype", "float64")), ["float64", "float32"])
     dtype = getattr(torch, str(cfg.get("dtype", "float64")))
-    gen = torch.Generator(device=device).manual_seed(int(cfg.get("seed", 0)))
+    seed = cfg.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ConfigError(f"seed={seed!r} must be an integer >= 0")
     t0 = time.perf_counter()
 
     B, K, L = p["mc_runs"], p["num_timings"], p["num_samples"]
     sensors = torch.tensor(p["sensors"], dtype=dtype, device=device)
     h = SquaredRange(sensors)
-    N = sensors.shape[0]
+    N, M = sensors.shape
+    # every Monte Carlo run r draws from its own stream seeded by (seed, r): its numbers do not
+    # depend on mc_runs or on the other runs; all configurations share them (common random numbers)
+    drive, noise = run_noise(int(seed), range(B), K, M, N, L, dtype=dtype, device=device)
     truth = polynomial_trajectory(torch.tensor(p["coefficients"], dtype=dtype, device=device), K, p["drive_var"],
-                                  (B,), gen)
-    noise = torch.randn(B, K, N, L, generator=gen, dtype=dtype, device=device)  # shared by all configs (CRN)
+                                  noise=drive)
 
     # configuration grid: (sigma_y, iterations) -- fig2 varies t, fig5 varies sigma_y
     T, s0 = p["max_iter"], p["sigma_y"]
@@ -185,7 +231,7 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     out = simulate(h, truth, noise, sig, its, TrackerSettings(**p["settings"]))
 
     frames = []
-    base = dict(node=NODE, variant="paper")
+    base = dict(node=NODE, variant=MAIN)
     err = {m: (out.estimates[m] - truth).square().mean(-1) for m in MODELS}  # (C, B, K)
     crlb = out.crlb_truth                                                     # (C, B, K)
     ref = index[(s0, T)]
@@ -232,7 +278,8 @@ def run(cfg: DictConfig) -> pd.DataFrame:
         diag = {"near_zero_lambda": out.near_zero_lambda[c].double(), "precision_floor": out.floored[c].double(),
                 "iters_to_converge": out.iters_to_converge[c].double().mean(-1),
                 "unconverged_fraction": (out.iters_to_converge[c] > T).double().mean(-1),
-                "obs_var_mean": out.obs_var[c].mean(-1)}
+                "obs_var_mean": out.obs_var[c].mean(-1),
+                "gated_fraction": out.gated[c].double() / (K * M)}
         for metric, v in diag.items():
             frames.append(_rows(v.cpu().numpy(), metric, figure="diag", model="fg_identification",
                                 consensus="gaussian_bp", iteration=t, timing=-1, sigma_y=s, **base))
@@ -295,18 +342,23 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
 
     # Fig. 2
     f2 = rm[rm["figure"] == "fig2"]
-    f2 = f2.assign(series=f2["model"] + np.where(f2["variant"] == "paper", "", "[" + f2["variant"] + "]"))
-    t_paper = int(f2.loc[f2["variant"] == "paper", "iteration"].max())
-    tab2 = _pooled(f2[(f2["iteration"] >= 0) & (f2["iteration"] <= t_paper)], ["iteration", "series"]).unstack("series")
+    f2 = f2.assign(series=f2["model"] + np.where(f2["variant"] == MAIN, "", "[" + f2["variant"] + "]"))
+    t_main = int(f2.loc[f2["variant"] == MAIN, "iteration"].max())
+    tab2 = _pooled(f2[(f2["iteration"] >= 0) & (f2["iteration"] <= t_main)], ["iteration", "series"]).unstack("series")
     refs = _pooled(f2[f2["iteration"] < 0], ["series"])
     tab2.to_csv(out_dir / "jiang_fg_fig2.csv")
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for col in tab2.columns:
-        ax.semilogy(tab2.index, tab2[col], marker="o", label=col)
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    colors = plt.get_cmap("tab20").colors
+    for i, col in enumerate(tab2.columns):
+        y = tab2[col].dropna()
+        tracker = str(col).startswith("ekf_fg")
+        ax.semilogy(y.index, y.values, ls=("--" if tracker else "-") if len(y) > 1 else "none",
+                    marker="s" if tracker else "o", ms=4, color=colors[i % len(colors)], label=col)
     for name, v in refs.items():
-        ax.axhline(v, ls="--", lw=1, color="k" if name == "crlb" else "gray", label=name)
+        ax.axhline(v, ls=":" if name == "crlb" else "--", lw=1, color="k" if name == "crlb" else "gray", label=name)
     ax.set_xlabel("FG iterations"); ax.set_ylabel("RMSE"); ax.set_title("Fig. 2: convergence")
-    ax.legend(fontsize=7); fig.tight_layout(); fig.savefig(out_dir / "jiang_fg_fig2.png", dpi=120); plt.close(fig)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5)); fig.tight_layout()
+    fig.savefig(out_dir / "jiang_fg_fig2.png", dpi=120); plt.close(fig)
     md += ["### Fig. 2: RMSE vs FG iterations (t = 0 is the initial guess)", "", _md(tab2, "iteration"), "",
            "Reference (all timings): " + ", ".join(f"{k} = {_fmt(v)}" for k, v in refs.items()), ""]
     # variants (ablations) at their own final iteration count
@@ -340,7 +392,7 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
                + ", ".join(f"{k} = {_fmt(v)}" for k, v in gaps.items()), ""]
 
     # Fig. 4
-    f4 = rm[(rm["figure"] == "fig4") & (rm["variant"] == "paper")]
+    f4 = rm[(rm["figure"] == "fig4") & (rm["variant"] == MAIN)]
     tab4 = _pooled(f4, ["timing", "model"]).unstack("model")
     tab4.to_csv(out_dir / "jiang_fg_fig4.csv")
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -354,7 +406,7 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
                f"{c} = {_fmt(v)}" for c, v in _pooled(f4.assign(timing=0), ["model"]).items()), ""]
 
     # Fig. 5
-    f5 = rm[(rm["figure"] == "fig5") & (rm["variant"] == "paper")]
+    f5 = rm[(rm["figure"] == "fig5") & (rm["variant"] == MAIN)]
     tab5 = _pooled(f5, ["sigma_y", "model"]).unstack("model")
     tab5.to_csv(out_dir / "jiang_fg_fig5.csv")
     fig, ax = plt.subplots(figsize=(6, 4))
