@@ -122,12 +122,14 @@ class FaultyFusion:
         self.t = 0
 
     def __call__(self, q_pred: Tensor, o_pred: Tensor, dq: Tensor, do: Tensor) -> tuple[Tensor, Tensor]:
+        # the first call after begin() is the initial belief's fusion (t = 0), then t = 1, 2, ...
+        tt = self.t
         self.t += 1
         if self.base.name in ("individual", "centralized"):
             return self.base(q_pred, o_pred, dq, do)
         if self.alive is None:
             raise RuntimeError("FaultyFusion.begin(alive) must be called before tracking")
-        tt = min(self.t, self.alive.shape[-1] - 1)
+        tt = min(tt, self.alive.shape[-1] - 1)
         alive_t = self.alive[:, :, tt].T.to(self.adj.device)  # (B, S)
         live = draw_live_graph(self.adj, alive_t, self.p_link, self.gen)
         self.live_links += float(live.sum()) / 2

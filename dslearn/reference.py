@@ -126,6 +126,8 @@ class ReferenceYu(YuStudy):
             raise ConfigError(f"observation.name={c.observation.name!r}: the reference implementation supports 'linear' only")
         if fusion.name not in ("individual", "hybrid", "cm", "ci", "centralized"):
             raise ConfigError(f"consensus.name={fusion.name!r}: the reference implementation supports individual, hybrid, cm, ci, centralized")
+        if getattr(model, "noise_mode", "latent") == "adaptive":
+            raise ConfigError("model.noise=adaptive: the reference implementation supports latent and predictive only")
         if getattr(model, "fit_every", 0) or getattr(model, "variant", "exact") != "exact":
             raise ConfigError("model: the reference implementation supports the exact GP with fixed hyperparameters only (variant=exact, fit_every=0)")
         dtype, device = DTYPES[c.dtype], _resolve_device(c.device)
@@ -140,8 +142,6 @@ class ReferenceYu(YuStudy):
         self.ref_nodes = nodes
         from .tracker import initial_belief
 
-        centre = torch.tensor([(scenario.area[0] + scenario.area[1]) / 2, (scenario.area[2] + scenario.area[3]) / 2], dtype=dtype)
-        pooled = fusion.name == "centralized"
         gate = c.filter.get("learn_gate_std")
         W = fusion.weights.to(dtype)
         sig2 = float(obs.noise_std) ** 2
@@ -151,11 +151,11 @@ class ReferenceYu(YuStudy):
         for k in checkpoints:
             while learnable and seen < k:
                 ep = train.select(slice(seen, seen + 1))
-                m0, o0 = initial_belief(ep, network, ctx.dt, centre, c.filter.prior_pos_std, c.filter.prior_vel_std, pooled)
+                m0, o0 = initial_belief(ep, network, ctx.dt, fusion, scenario.area, c.filter.prior_pos_std, c.filter.prior_vel_std)
                 self._track_one(ep, 0, nodes, fusion, W, sig2, m0[:, 0], o0[:, 0], learn=True, gate=gate)
                 seen += 1
             # evaluation: one test episode at a time
-            m0, o0 = initial_belief(test, network, ctx.dt, centre, c.filter.prior_pos_std, c.filter.prior_vel_std, pooled)
+            m0, o0 = initial_belief(test, network, ctx.dt, fusion, scenario.area, c.filter.prior_pos_std, c.filter.prior_vel_std)
             means, infos = [], []
             for b in range(len(test)):
                 mb, ob = self._track_one(test, b, nodes, fusion, W, sig2, m0[:, b], o0[:, b], learn=False, gate=None)

@@ -2,6 +2,7 @@ r"""Online data-driven distributed EKF (Yu et al. Algorithm 1), vectorised over 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -9,10 +10,11 @@ from torch import Tensor
 
 from .consensus.fusion import Fusion
 from .filters.information import novel_information, predict
+from .filters.smoother import transition_error_moments
 from .models.base import MotionModel, ObservationModel
 from .sim.network import SensorNetwork
 from .sim.scenario import Episodes
-from .types import AGENT_DIM, StepContext, agents, safe_cholesky
+from .types import AGENT_DIM, StepContext, agents, safe_cholesky, symmetrize
 
 
 @dataclass
@@ -23,51 +25,87 @@ class TrackResult:
     info: Tensor
 
 
+def prior_means(num_agents: int, area) -> Tensor:
+    r"""Where a node places a target it knows nothing about: ``(A, 4)``.
+
+    Target ``j`` sits at :math:`c + r(\cos\theta_j, \sin\theta_j)`, :math:`\theta_j = 2\pi j/A`,
+    with ``c`` the centre of ``area = (xmin, xmax, ymin, ymax)`` and ``r`` a sixteenth of its
+    smaller side (0.5 m in an 8 m area), at zero velocity: distinct points near the centre, so
+    no prior puts two targets on one point (where interaction models are at their stiffest)
+    and none is further than needed from a target anywhere in the area. With near-zero
+    information (:func:`diffuse_prior`) the mean only matters until a node receives
+    information about the target.
+    """
+    x0, x1, y0, y1 = (float(v) for v in area)
+    r = min(x1 - x0, y1 - y0) / 16
+    th = 2 * math.pi * torch.arange(num_agents, dtype=torch.float64) / num_agents
+    pos = torch.stack([(x0 + x1) / 2 + r * th.cos(), (y0 + y1) / 2 + r * th.sin()], -1)
+    return torch.cat([pos, torch.zeros_like(pos)], -1)
+
+
+def diffuse_prior(
+    num_agents: int, area, pos_std: float, vel_std: float, shape: tuple[int, ...], dtype, device
+) -> tuple[Tensor, Tensor]:
+    """The belief before any observation: :func:`prior_means` with information
+    ``diag(pos_std^-2, pos_std^-2, vel_std^-2, vel_std^-2)`` per target (near zero for the
+    default 1 km, 1 km/s). Returns ``mean (*shape, Dx)``, ``info (*shape, Dx, Dx)``."""
+    mean = prior_means(num_agents, area).to(device, dtype).flatten()
+    d = torch.tensor([pos_std**-2, pos_std**-2, vel_std**-2, vel_std**-2], dtype=dtype, device=device).repeat(num_agents)
+    info = torch.diag_embed(d)
+    return mean.expand(*shape, -1).clone(), info.expand(*shape, -1, -1).clone()
+
+
+def first_observations(ep: Episodes, network: SensorNetwork, dt: float) -> tuple[Tensor, Tensor]:
+    r"""Each node's pseudo-measurement of the initial state from its first two observations
+    (Yu et al. V-C), in information form.
+
+    A node that saw target ``j`` at t = 0 and t = 1 contributes :math:`\hat y_j^0 = (z^0, (z^1 - z^0)/\Delta t)`
+    with information :math:`\Omega_j = \mathrm{diag}(\sigma_\nu^{-2}, \sigma_\nu^{-2}, \Delta t^2/2\sigma_\nu^2, \Delta t^2/2\sigma_\nu^2)`
+    (the paper's :math:`\Omega^0`); any other node contributes zero information about ``j``.
+
+    Returns:
+        ``dq (S, B, Dx)``, ``domega (S, B, Dx, Dx)``.
+    """
+    z0, z1 = ep.meas[:, :, 0], ep.meas[:, :, 1]  # (S, B, A, 2)
+    seen = (ep.visible[:, :, 0] & ep.visible[:, :, 1]).to(z0.dtype).unsqueeze(-1)  # (S, B, A, 1)
+    sig2 = network.meas_std**2
+    y0 = torch.cat([z0, (z1 - z0) / dt], -1)  # (S, B, A, 4)
+    w = torch.tensor([1 / sig2, 1 / sig2, dt**2 / (2 * sig2), dt**2 / (2 * sig2)], dtype=z0.dtype, device=z0.device)
+    diag = w * seen  # (S, B, A, 4)
+    return (diag * y0).flatten(-2), torch.diag_embed(diag.flatten(-2))
+
+
 def initial_belief(
     ep: Episodes,
     network: SensorNetwork,
     dt: float,
-    centre: Tensor,
-    prior_pos_std: float,
-    prior_vel_std: float,
-    pooled: bool = False,
+    fusion: Fusion,
+    area,
+    prior_pos_std: float = 1000.0,
+    prior_vel_std: float = 1000.0,
 ) -> tuple[Tensor, Tensor]:
-    r"""Initial state and information matrix from the first two observations (Yu et al. V-C).
+    r"""Initial belief of every node: the diffuse prior fused with the first observations.
 
-    A node that saw target ``j`` at t = 0 and t = 1 uses :math:`(z^0, (z^1 - z^0)/\Delta t)` with
-    information :math:`\mathrm{diag}(\sigma_\nu^{-2}, \sigma_\nu^{-2}, \Delta t^2/2\sigma_\nu^2, \Delta t^2/2\sigma_\nu^2)`;
-    otherwise a weak prior (area centre, zero velocity, the given standard deviations).
-    With ``pooled`` (the centralised reference) all sensors' first observations are averaged
-    and every node gets that same belief.
+    One rule for every fusion strategy: each node starts from :func:`diffuse_prior` (near-zero
+    information, distinct means), adds the novel information of its own first two observations
+    (:func:`first_observations`) and fuses like at any other step: ``individual`` keeps its
+    own (the paper's initialisation where the node saw the target), consensus spreads it to
+    the nodes that did not, ``centralized`` sums every sensor's. A node that learns nothing
+    about a target keeps the diffuse prior, finite and uninformative (a learning gate,
+    ``filter.learn_gate_std``, keeps such estimates out of its data set).
 
     Returns:
         ``mean (S, B, Dx)``, ``info (S, B, Dx, Dx)``.
     """
-    z0, z1 = ep.meas[:, :, 0], ep.meas[:, :, 1]  # (S, B, A, 2)
-    seen = ep.visible[:, :, 0] & ep.visible[:, :, 1]  # (S, B, A)
-    sig2 = network.meas_std**2
-    dtype = z0.dtype
-    if pooled:
-        cnt = seen.sum(0, keepdim=True).to(dtype)  # (1, B, A)
-        z0 = (z0 * seen.unsqueeze(-1)).sum(0, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
-        z1 = (z1 * seen.unsqueeze(-1)).sum(0, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
-        seen_w = cnt
-        seen = cnt > 0
-    else:
-        seen_w = seen.to(dtype)
-    pos = torch.where(seen.unsqueeze(-1), z0, centre.to(dtype))
-    vel = torch.where(seen.unsqueeze(-1), (z1 - z0) / dt, torch.zeros_like(z0))
-    mean = torch.cat([pos, vel], -1)  # (S', B, A, 4)
-    dev = z0.device
-    inf_seen = torch.tensor([1 / sig2, 1 / sig2, dt**2 / (2 * sig2), dt**2 / (2 * sig2)], dtype=dtype, device=dev)
-    inf_weak = torch.tensor(
-        [prior_pos_std**-2, prior_pos_std**-2, prior_vel_std**-2, prior_vel_std**-2], dtype=dtype, device=dev
-    )
-    diag = torch.where(seen.unsqueeze(-1), inf_seen * seen_w.clamp_min(1).unsqueeze(-1), inf_weak)
-    mean = mean.flatten(-2)
-    info = torch.diag_embed(diag.flatten(-2))
-    s = network.num_nodes
-    return mean.expand(s, *mean.shape[1:]).clone(), info.expand(s, *info.shape[1:]).clone()
+    s, b = network.num_nodes, len(ep)
+    a = ep.meas.shape[-2]
+    m0, o0 = diffuse_prior(a, area, prior_pos_std, prior_vel_std, (s, b), ep.meas.dtype, ep.meas.device)
+    q0 = (o0 @ m0.unsqueeze(-1)).squeeze(-1)
+    dq, do = first_observations(ep, network, dt)
+    q, o = fusion(q0, o0, dq, do)
+    o = symmetrize(o)
+    mean = torch.cholesky_solve(q.unsqueeze(-1), safe_cholesky(o)).squeeze(-1)
+    return mean, o
 
 
 def track(
@@ -102,13 +140,19 @@ def track(
     y, o = init
     means, infos = [y], [o]
     steps = ep.states.shape[1] - 1
+    adapt = learn and bool(getattr(model, "adapts_noise", False))
+    pred_log = []  # (y_pred, P_pred, F, Q) per step, for the process-noise EM step
+    informed = torch.ones(network.num_nodes, dtype=torch.bool, device=ep.meas.device)
     for t in range(1, steps + 1):
-        y_pred, q_pred, o_pred = predict(y, o, model, ctx)
+        y_pred, q_pred, o_pred, *pq = predict(y, o, model, ctx, full=adapt)
         dq, do = novel_information(y_pred, ep.meas[:, :, t], ep.visible[:, :, t], obs, gate_prob=gate_prob, omega_pred=o_pred)
         q, o = fusion(q_pred, o_pred, dq, do)
         y_new = torch.cholesky_solve(q.unsqueeze(-1), safe_cholesky(o)).squeeze(-1)
         if learn:
             ok_prev, ok_new = _informed(infos[-1], learn_gate_std), _informed(o, learn_gate_std)
+            if adapt:
+                pred_log.append((y_pred[:, 0], *(m[:, 0] for m in pq)))
+                informed &= ok_prev & ok_new & _informed(o, DIFFUSE_GUARD_STD)
             if model.learnable:
                 model.add_data(y[:, 0], y_new[:, 0], ok_prev)
             if obs.learnable:
@@ -116,7 +160,17 @@ def track(
         y = y_new
         means.append(y)
         infos.append(o)
+    if adapt:  # EM step for the process noise: smooth the episode, expected transition errors
+        m_f = torch.stack(means, 2)[:, 0]
+        P_f = torch.cholesky_inverse(safe_cholesky(torch.stack(infos, 2)[:, 0]))
+        yp, Pp, Fj, Qu = (torch.stack(v, 1) for v in zip(*pred_log))
+        model.update_noise(transition_error_moments(m_f, P_f, yp, Pp, Fj), Qu, informed)
     return TrackResult(torch.stack(means, 2), torch.stack(infos, 2))
+
+
+#: a node whose position std for some target exceeds this (m) still holds (about) the diffuse
+#: prior: its estimates carry nothing to learn the process noise from, whatever the learning gate
+DIFFUSE_GUARD_STD = 10.0
 
 
 def _informed(info: Tensor, gate_std: float | None) -> Tensor:

@@ -39,9 +39,14 @@ class StepContext:
 
     Attributes:
         dt: time step in seconds.
+        cov: the filter's covariance of the state being predicted, ``(*B, Dx, Dx)``, set by the
+            filter's prediction step (``None`` elsewhere: simulation, roll-outs). Models whose
+            prediction depends on how well the state is known use it (the social force softens
+            interactions with poorly known agents); the others ignore it.
     """
 
     dt: float = 0.25
+    cov: Optional[Tensor] = None
 
 
 def symmetrize(m: Tensor) -> Tensor:

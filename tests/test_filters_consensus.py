@@ -45,25 +45,24 @@ def test_information_ekf_equals_kalman_filter():
     assert torch.allclose(post_P[0, 0], P_kf, atol=1e-10)
 
 
-def _linear_run(fusion_name, weights_fn, iterations, omega, pooled):
+def _linear_run(fusion_name, weights_fn, iterations, omega):
     scen = SocialForceScenario(process_std=1e-3)
     net = make_network(seed=1, sensing_range=3.0)
     ep = scen.sample(3, net, torch.Generator().manual_seed(5))
     lin, obs = ConstantVelocity(2, 0.1), LinearPositionObservation(0.2)
     fusion = make_fusion(fusion_name, weights_fn(net.adjacency), iterations, omega)
-    centre = torch.tensor([4.0, 4.0], dtype=D)
-    init = initial_belief(ep, net, 0.25, centre, 4.0, 2.0, pooled=pooled)
+    init = initial_belief(ep, net, 0.25, fusion, scen.area)  # the same rule for every fusion
     return track(ep, net, lin, obs, fusion, CTX, init)
 
 
 def test_hybrid_metropolis_many_iterations_equals_centralized():
     """Doubly stochastic weights, omega = S, L -> infinity: every node = centralised filter."""
-    central = _linear_run("centralized", metropolis, 0, "one", pooled=True)
-    hybrid = _linear_run("hybrid", metropolis, 400, "nodes", pooled=True)
+    central = _linear_run("centralized", metropolis, 0, "one")
+    hybrid = _linear_run("hybrid", metropolis, 400, "nodes")
     assert torch.allclose(hybrid.mean, central.mean, atol=1e-8)
     assert torch.allclose(hybrid.info, central.info, rtol=1e-8, atol=1e-6)
     # and the CM strategy reaches the same limit
-    cm = _linear_run("cm", metropolis, 400, "nodes", pooled=True)
+    cm = _linear_run("cm", metropolis, 400, "nodes")
     assert torch.allclose(cm.mean, central.mean, atol=1e-8)
 
 
@@ -122,3 +121,81 @@ def test_safe_cholesky_jitters_only_the_failing_matrix():
     # a clean batch records nothing
     safe_cholesky(m[:2], log=log)
     assert log.count == 1
+
+
+def _local_posteriors(s, b=2, d=8, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randn(s, b, d, d, dtype=D, generator=g)
+    O_pred = a @ a.transpose(-1, -2) + d * torch.eye(d, dtype=D)
+    a = torch.randn(s, b, d, d, dtype=D, generator=g)
+    dO = 0.3 * (a @ a.transpose(-1, -2)) + torch.eye(d, dtype=D)
+    return torch.randn(s, b, d, dtype=D, generator=g), O_pred, torch.randn(s, b, d, dtype=D, generator=g), dO
+
+
+@pytest.mark.parametrize("graph", ["complete", "ring"])
+def test_ci_is_the_average_of_local_posterior_information(graph):
+    """CI, complete graph (one round = the average) or a ring with Metropolis weights and many
+    rounds: every node holds (1/S) sum_i (q_i, Omega_i) of the local posteriors, so its estimate is
+    the information-weighted average of the local estimates."""
+    s = 6
+    if graph == "complete":
+        adj, rounds = ~torch.eye(s, dtype=torch.bool), 1
+        w = uniform(adj)
+    else:
+        adj = torch.zeros(s, s, dtype=torch.bool)
+        for i in range(s):
+            adj[i, (i + 1) % s] = adj[(i + 1) % s, i] = True
+        w, rounds = metropolis(adj), 300
+    q_pred, O_pred, dq, dO = _local_posteriors(s)
+    q, O = make_fusion("ci", w, rounds, "one")(q_pred, O_pred, dq, dO)
+    q_loc, O_loc = q_pred + dq, O_pred + dO
+    assert torch.allclose(O, O_loc.mean(0, keepdim=True).expand_as(O), atol=1e-9)
+    y = torch.linalg.solve(O, q.unsqueeze(-1)).squeeze(-1)
+    y_exp = torch.linalg.solve(O_loc.sum(0), q_loc.sum(0).unsqueeze(-1)).squeeze(-1)
+    assert torch.allclose(y, y_exp.expand_as(y), atol=1e-9)
+
+
+def test_ce_averages_the_local_estimates_and_keeps_local_information():
+    """CE on a complete graph (uniform weights 1/S, one round): every node's estimate is the plain
+    average of the local posterior estimates; its information stays its own local posterior's."""
+    s = 5
+    w = uniform(~torch.eye(s, dtype=torch.bool))
+    q_pred, O_pred, dq, dO = _local_posteriors(s, seed=1)
+    q, O = make_fusion("ce", w, 1, "one")(q_pred, O_pred, dq, dO)
+    O_loc = O_pred + dO
+    y_loc = torch.linalg.solve(O_loc, (q_pred + dq).unsqueeze(-1)).squeeze(-1)
+    assert torch.allclose(O, O_loc, atol=1e-12)
+    y = torch.linalg.solve(O, q.unsqueeze(-1)).squeeze(-1)
+    assert torch.allclose(y, y_loc.mean(0, keepdim=True).expand_as(y), atol=1e-9)
+
+
+def test_tracking_metrics_by_hand():
+    from dslearn.tracker import TrackResult, tracking_metrics
+
+    # one node, one episode, K = 2 steps, two agents; errors chosen by hand
+    truth = torch.zeros(1, 3, 8, dtype=D)
+    mean = torch.zeros(1, 1, 3, 8, dtype=D)
+    mean[0, 0, 0, 0] = 100.0  # t = 0 is not scored
+    mean[0, 0, 1, 0:2] = torch.tensor([3.0, 4.0], dtype=D)  # agent 1, t = 1: position error 5
+    mean[0, 0, 1, 6] = 7.0  # a velocity error: not in the position errors, in the NEES
+    mean[0, 0, 2, 4:6] = torch.tensor([0.0, 1.0], dtype=D)  # agent 2, t = 2: position error 1
+    info = torch.diag_embed(torch.full((1, 1, 3, 8), 2.0, dtype=D))
+    m = tracking_metrics(TrackResult(mean, info), truth)
+    # position errors over (t, agent): t1 (5, 0), t2 (0, 1)
+    assert m["track_err"].item() == pytest.approx((5 + 0 + 0 + 1) / 4)
+    assert m["track_rmse"].item() == pytest.approx(((25 + 0 + 0 + 1) / 4) ** 0.5)
+    # NEES: t1: 2 * (9 + 16 + 49) = 148, t2: 2 * 1 = 2; mean over t / Dx
+    assert m["nees"].item() == pytest.approx((148 + 2) / 2 / 8)
+
+
+def test_prediction_error_by_hand():
+    from dslearn.tracker import prediction_error
+
+    lin = ConstantVelocity(1, 0.1)
+    ctx = StepContext(dt=0.5)
+    # truth: an agent that moves at (1, 0) for one step, then stops
+    truth = torch.tensor([[[0.0, 0.0, 1.0, 0.0], [0.5, 0.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.0]]], dtype=D)
+    err = prediction_error(lin, truth, num_nodes=3, ctx=ctx, per_node=False)
+    # CV from the true t = 0 state: (0.5, 0) then (1.0, 0): errors 0 and 0.5
+    assert err.shape == (3, 1)
+    assert torch.allclose(err, torch.full((3, 1), 0.25, dtype=D))

@@ -43,7 +43,11 @@ def test_social_force_step_and_jacobian():
 def test_constant_velocity_matrix():
     lin = ConstantVelocity(2, 0.1)
     x = torch.randn(3, 8, dtype=D)
-    assert torch.allclose(lin(x, CTX), x @ lin.matrix(0.25).T)
+    # by hand: positions move by v dt, velocities stay
+    ag = x.unflatten(-1, (2, 4))
+    expected = torch.cat([ag[..., :2] + 0.25 * ag[..., 2:], ag[..., 2:]], -1).flatten(-2)
+    assert torch.allclose(lin(x, CTX), expected, atol=1e-15)
+    assert torch.allclose(x @ lin.matrix(0.25).T, expected, atol=1e-15)
     assert torch.allclose(lin.jacobian(x, CTX), batch_jacobian(lambda z: lin(z, CTX), x))
     assert torch.allclose(lin.noise_cov(x, CTX)[0], 0.01 * torch.eye(8, dtype=D))
     with pytest.raises(ConfigError, match="model.noise_std"):

@@ -160,16 +160,32 @@ def _tiny_cfg(model_overrides):
 
 
 def test_study_runs_each_variant_and_large_window_equals_exact():
+    from dslearn.models.gp import OnlineGP
     from dslearn.studies.yu import YuStudy
 
     ref = YuStudy.from_config(_tiny_cfg({})).run()
     win = YuStudy.from_config(_tiny_cfg({"variant": "window", "window": 1000})).run()
     assert (ref["value"] - win["value"]).abs().max() < 1e-9
+    te_ref = ref[ref.metric == "track_err"]["value"].mean()
     for ov in ({"variant": "sgpr", "inducing": 16}, {"variant": "ssgp", "features": 50}, {"variant": "window", "window": 20}):
-        df = YuStudy.from_config(_tiny_cfg(ov)).run()
+        study = YuStudy.from_config(_tiny_cfg(ov))
+        df = study.run()
         assert df["value"].notna().all() and len(df) == len(ref)
         te = df[df.metric == "track_err"]["value"].mean()
-        assert te < 2 * ref[ref.metric == "track_err"]["value"].mean() + 0.05
+        # measured: SGPR +7 %, SSGP -5 %, window(20) +8 % against the exact GP on the same 4 + 3 episodes
+        assert abs(te - te_ref) < 0.25 * te_ref, (ov, te, te_ref)
+    # the window did slide (48 points appended, 20 kept), and its posterior at the end of the
+    # study is the exact GP of its last 20 points (the downdates lost nothing)
+    gp = study.model.gp
+    assert gp.seen == 4 * 12 and gp.n == 20
+    exact = OnlineGP(gp.num_nodes, 8, 8, float(gp.outputscale[0]) ** 0.5, float(gp.lengthscale[0]), float(gp.noise_var[0]) ** 0.5,
+                     mean="identity", capacity=32)
+    for i in range(gp.n):
+        x = gp.X[:, i]
+        exact.append(x, gp.R[:, i] + x, gp.mask[:, i])
+    xq = torch.randn(gp.num_nodes, 5, 8, dtype=D, generator=torch.Generator().manual_seed(3)) + 4.0
+    for a, b in zip(gp.predict(xq), exact.predict(xq)):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-9)
 
 
 @pytest.mark.parametrize("variant,opts", [("window", dict(window=12)), ("sgpr", dict(inducing=10)), ("ssgp", dict(features=40))])

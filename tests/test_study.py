@@ -132,7 +132,7 @@ def test_summary_average_row():
 
 
 def test_learning_gate_skips_uninformed_pairs(make_cfg):
-    """With the gate, a node whose estimate is the vague prior appends nothing (invalid points)."""
+    """With the gate, a node whose estimate is the diffuse prior appends nothing (invalid points)."""
     from dslearn.tracker import initial_belief, track
 
     cfg = make_cfg("model=gp", "consensus=individual", "data.train_episodes=1", "data.test_episodes=1")
@@ -141,8 +141,7 @@ def test_learning_gate_skips_uninformed_pairs(make_cfg):
     import torch
 
     ep = scenario.sample(1, network, torch.Generator().manual_seed(0))
-    centre = torch.tensor([4.0, 4.0], dtype=torch.float64)
-    init = initial_belief(ep, network, 0.25, centre, 4.0, 2.0)
+    init = initial_belief(ep, network, 0.25, fusion, scenario.area)
     track(ep, network, model, obs, fusion, scenario.ctx(), init, learn=True, learn_gate_std=0.5)
     mask = model.gp.mask[:, : model.gp.n]
     assert model.gp.n == scenario.steps

@@ -51,7 +51,7 @@ class Fusion:
             check_choice("consensus.omega", omega, ("one", "nodes"))
             self.omega = 1.0 if omega == "one" else float(s)
         else:
-            if not float(omega) > 0:
+            if not 0 < float(omega) < float("inf"):
                 raise ConfigError(f"consensus.omega={omega!r} must be > 0, 'one' or 'nodes'")
             self.omega = float(omega)
         self.omega_label = str(omega)

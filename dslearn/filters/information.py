@@ -6,6 +6,7 @@ Shapes: nodes first, ``(S, B, Dx)`` and ``(S, B, Dx, Dx)``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -29,21 +30,24 @@ def to_information(mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def predict(
-    mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext
-) -> tuple[Tensor, Tensor, Tensor]:
+    mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext, full: bool = False
+) -> tuple[Tensor, ...]:
     r"""Prediction (Algorithm 2 lines 2–6).
 
     :math:`\hat y^{t|t-1} = f(\hat y^{t-1})`, :math:`A = \partial f/\partial y`,
     :math:`\Omega^{t|t-1} = (A \Omega^{-1} A^T + Q)^{-1}`, :math:`q^{t|t-1} = \Omega^{t|t-1} \hat y^{t|t-1}`.
 
     Returns:
-        ``(y_pred (S,B,Dx), q_pred (S,B,Dx), omega_pred (S,B,Dx,Dx))``.
+        ``(y_pred (S,B,Dx), q_pred (S,B,Dx), omega_pred (S,B,Dx,Dx))``, and with ``full`` also
+        ``P_pred``, the Jacobian ``F`` and the process noise ``Q`` used (all ``(S,B,Dx,Dx)``).
     """
-    y_pred, F, Q = model.linearize(mean, ctx)
     P = spd_inverse(omega)
+    y_pred, F, Q = model.linearize(mean, dataclasses.replace(ctx, cov=P))
     P_pred = symmetrize(F @ P @ F.transpose(-1, -2) + Q)
     omega_pred = spd_inverse(P_pred)
     q_pred = (omega_pred @ y_pred.unsqueeze(-1)).squeeze(-1)
+    if full:
+        return y_pred, q_pred, omega_pred, P_pred, F, Q
     return y_pred, q_pred, omega_pred
 
 

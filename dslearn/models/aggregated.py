@@ -175,6 +175,8 @@ class AggregatedGPMotion(MotionModel):
 def build_aggregated_motion(c, state_dim: int, num_nodes: int, dtype, device) -> AggregatedGPMotion:
     """Model config (``conf/model/gp*_rbcm.yaml``: the GP keys + ``aggregation``,
     ``normalise_beta``, ``aggregation_jacobian``) -> :class:`AggregatedGPMotion`."""
+    if str(c.noise) == "adaptive":
+        raise ConfigError("model.noise=adaptive is not available for an aggregated GP (model.kind=gp_aggregated); use latent or predictive")
     base = GPMotionModel(
         state_dim, num_nodes, outputscale=c.outputscale, lengthscale=c.lengthscale,
         noise_std=c.noise_std, mean=c.mean, noise=c.noise, jacobian=c.jacobian,

@@ -27,7 +27,7 @@ from ..types import JITTER, StepContext, safe_cholesky
 from .base import MotionModel
 
 MEANS = ("zero", "constant", "identity")
-NOISE_MODES = ("latent", "predictive")
+NOISE_MODES = ("latent", "predictive", "adaptive")
 
 
 def _same_input(a: Tensor, b: Tensor, version: int) -> bool:
@@ -365,8 +365,14 @@ class GPMotionModel(MotionModel):
 
     Each of the ``S`` nodes keeps its own data set :math:`D_{f,i}` of (ŷ^{t-1} → ŷ^t) pairs.
     :math:`f(y) = \mu_f(y)`, Jacobian :math:`\partial\mu_f/\partial y` (closed form or autograd),
-    process covariance :math:`Q = \Sigma_f(y) I` (``noise=latent``, as printed) or
-    :math:`(\Sigma_f(y) + \sigma_\epsilon^2) I` (``noise=predictive``).
+    process covariance :math:`Q = \Sigma_f(y) I` (``noise=latent``, as printed),
+    :math:`(\Sigma_f(y) + \sigma_\epsilon^2) I` (``noise=predictive``), or
+    :math:`\Sigma_f(y) I + \mathrm{diag}(q)` (``noise=adaptive``): ``q`` holds one position and one
+    velocity variance per node, learned while tracking like the data set: after each training
+    episode the node smooths its own estimates and takes the EM (maximum-likelihood) step for
+    the process noise (:meth:`update_noise`). The latent variance only says how well the GP
+    knows the mean of its (noisy, biased) targets; ``q`` is the one-step model error the
+    filter actually meets.
 
     Inputs to :meth:`forward` etc. must have the node dimension first: ``(S, *B, Dx)``.
 
@@ -379,6 +385,8 @@ class GPMotionModel(MotionModel):
         jacobian: ``closed_form`` or ``autograd``.
         fit_every: refit hyperparameters by marginal likelihood after this many training
             episodes (0 = never, the paper's fixed hyperparameters).
+        noise_fading: fading factor ``b`` in (0, 1) of the ``adaptive`` noise estimate, per training
+            episode (a memory of about ``1/(1-b)`` episodes).
         variant: ``exact`` (:class:`OnlineGP`) or a scalable variant of
             :mod:`dslearn.models.sparse`: ``window`` (option ``window``), ``sgpr`` (``inducing``),
             ``ssgp`` (``features``, ``seed``); options are passed as keywords.
@@ -403,10 +411,15 @@ class GPMotionModel(MotionModel):
         dtype: torch.dtype = torch.float64,
         device: str | torch.device = "cpu",
         variant: str = "exact",
+        noise_fading: float = 0.9,
         **variant_options,
     ):
         super().__init__()
         check_choice("model.noise", noise, NOISE_MODES)
+        if not 0.0 < float(noise_fading) < 1.0:
+            raise ConfigError(f"model.noise_fading={noise_fading!r} must be in (0, 1)")
+        if state_dim % 4:
+            raise ConfigError(f"GPMotionModel: state_dim={state_dim} must be 4 x agents")
         check_choice("model.jacobian", jacobian, ("closed_form", "autograd"))
         if fit_every < 0:
             raise ConfigError(f"model.fit_every={fit_every} must be >= 0")
@@ -426,9 +439,51 @@ class GPMotionModel(MotionModel):
                 noise_std=noise_std, mean=mean, dtype=dtype, device=device, capacity=capacity, **variant_options,
             )
 
+        self.noise_fading = float(noise_fading)
+        # adaptive process noise: running (position, velocity) variance per node, and the weight of
+        # its fading average over episodes; it starts at sigma_eps^2, counted as one episode
+        self.register_buffer("q_noise", torch.full((num_nodes, 2), float(noise_std) ** 2, dtype=dtype, device=device))
+        self.register_buffer("q_weight", torch.ones(num_nodes, 1, dtype=dtype, device=device))
+
+    adapts_noise = property(lambda self: self.noise_mode == "adaptive")
+
     @property
     def num_nodes(self) -> int:
         return self.gp.num_nodes
+
+    def extra_noise(self, like: Tensor) -> Tensor:
+        """``(S, Dx)`` diagonal added to the latent variance in ``noise=adaptive`` (zeros otherwise)."""
+        if self.noise_mode != "adaptive":
+            return like.new_zeros(self.num_nodes, self.state_dim)
+        q = self.q_noise.clamp_min(0.0).to(like)  # (S, 2): position, velocity
+        return q.repeat_interleave(2, dim=-1).repeat(1, self.state_dim // 4)
+
+    @torch.no_grad()
+    def update_noise(self, moments: Tensor, Q_used: Tensor, valid: Tensor) -> None:
+        r"""EM update of the adaptive process noise (``noise=adaptive``) from one training episode.
+
+        ``moments`` are the expected outer products of the one-step transition error given the
+        whole episode (:func:`dslearn.filters.smoother.transition_error_moments`), whose
+        average is the M-step estimate of the total process noise. The latent part
+        :math:`\Sigma_f` the model already adds is taken off; what remains, pooled over agents
+        and axes into one position and one velocity variance per node, joins a fading average
+        over episodes (``noise_fading``; the initial value ``noise_std^2`` counts as one episode).
+
+        Args:
+            moments, Q_used: ``(S, K, Dx, Dx)``; valid: ``(S,)`` bool (nodes informed throughout).
+        """
+        if self.noise_mode != "adaptive":
+            return
+        d = lambda m: m.diagonal(dim1=-2, dim2=-1)  # noqa: E731
+        latent = d(Q_used) - self.extra_noise(Q_used).unsqueeze(1)  # (S, K, Dx)
+        sample = (d(moments) - latent).mean(1)  # (S, Dx)
+        sample = sample.unflatten(-1, (-1, 2, 2)).mean((-3, -1)).to(self.q_noise)  # (S, 2): position, velocity
+        ok = (valid.to(self.q_noise.device) & torch.isfinite(sample).all(-1)).unsqueeze(-1)
+        b = self.noise_fading
+        w_new = b * self.q_weight + 1.0
+        upd = (b * self.q_weight * self.q_noise + sample) / w_new
+        self.q_noise.copy_(torch.where(ok, upd, self.q_noise))
+        self.q_weight.copy_(torch.where(ok, w_new, self.q_weight))
 
     def _flat(self, x: Tensor) -> Tensor:
         if x.shape[0] != self.num_nodes:
@@ -445,6 +500,9 @@ class GPMotionModel(MotionModel):
             var = var + self.gp.noise_var.unsqueeze(-1)
         eye = torch.eye(self.state_dim, dtype=x.dtype, device=x.device)
         q = var.reshape(*x.shape[:-1], 1, 1) * eye
+        if self.noise_mode == "adaptive":
+            extra = self.extra_noise(x).reshape(self.num_nodes, *([1] * (x.dim() - 2)), self.state_dim)
+            q = q + torch.diag_embed(extra.expand(*x.shape))
         return mean.reshape(x.shape).to(x.dtype), jac.to(x.dtype), q.to(x.dtype)
 
     def forward(self, x: Tensor, ctx: StepContext) -> Tensor:

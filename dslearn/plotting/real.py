@@ -41,8 +41,8 @@ def _scene_order(df: pd.DataFrame) -> list[str]:
 def per_sensor_table(results: pd.DataFrame, metric: str) -> pd.DataFrame:
     """Rows (scene, node = sensors + avg), columns model; cells mean ± std over test episodes.
 
-    ``avg``: per episode the mean over sensing nodes, then mean ± std over episodes (the
-    paper's "Average" row).
+    ``avg`` is formed as the paper forms its "Average" row: the mean over sensing nodes of
+    their means ± the mean over sensing nodes of their standard deviations.
     """
     r = results[(results["metric"] == metric) & (results["node_kind"] == "sensor")]
     if "protocol" in r.columns:
@@ -50,8 +50,7 @@ def per_sensor_table(results: pd.DataFrame, metric: str) -> pd.DataFrame:
     if r.empty:
         return pd.DataFrame()
     g = r.groupby(["scene", "model", "node"], sort=False)["value"].agg(["mean", "std"]).reset_index()
-    avg = r.groupby(["scene", "model", "episode"], sort=False)["value"].mean().reset_index()
-    avg = avg.groupby(["scene", "model"], sort=False)["value"].agg(["mean", "std"]).reset_index()
+    avg = g.groupby(["scene", "model"], sort=False)[["mean", "std"]].mean().reset_index()
     avg["node"] = "avg"
     allr = pd.concat([g, avg], ignore_index=True)
     allr["cell"] = [_cell(m, s) for m, s in zip(allr["mean"], allr["std"])]
@@ -63,16 +62,18 @@ def per_sensor_table(results: pd.DataFrame, metric: str) -> pd.DataFrame:
 
 
 def average_table(results: pd.DataFrame) -> pd.DataFrame:
-    """Rows scene (and ``all``), columns ``<metric>: <model>``; sensor averages, mean ± std over episodes."""
+    """Rows scene (and ``all scenes``), columns ``<metric>: <model>``; sensor averages as the paper
+    forms them: mean over sensing nodes (and scenes) of the per-sensor means ± of the per-sensor
+    standard deviations over test episodes."""
     r = results[results["metric"].isin(["track_err", "pred_err"]) & (results["node_kind"] == "sensor")]
     if "protocol" in r.columns:
         r = r[r["protocol"] == "tables"]
     if r.empty:
         return pd.DataFrame()
-    ep = r.groupby(["scene", "metric", "model", "episode"], sort=False)["value"].mean().reset_index()
+    ep = r.groupby(["scene", "metric", "model", "node"], sort=False)["value"].agg(["mean", "std"]).reset_index()
     alls = ep.assign(scene="all scenes")
     ep = pd.concat([ep, alls], ignore_index=True) if ep["scene"].nunique() > 1 else ep
-    g = ep.groupby(["scene", "metric", "model"], sort=False)["value"].agg(["mean", "std"]).reset_index()
+    g = ep.groupby(["scene", "metric", "model"], sort=False)[["mean", "std"]].mean().reset_index()
     g["cell"] = [_cell(m, s) for m, s in zip(g["mean"], g["std"])]
     g["col"] = g["metric"].map({"track_err": "tracking", "pred_err": "prediction"}) + ": " + g["model"]
     cols = [f"{k}: {m}" for k in ("tracking", "prediction") for m in _models(g["model"]) if f"{k}: {m}" in set(g["col"])]

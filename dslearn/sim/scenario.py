@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from ..errors import ConfigError, check_positive
-from ..models.social_force import SocialForce
+from ..models.social_force import SOFTENING, SocialForce
 from ..types import AGENT_DIM, StepContext, agents, joint
 from .network import SensorNetwork
 
@@ -45,6 +45,8 @@ class SocialForceScenario:
         tau, alpha, beta: social force parameters (shared or per agent).
         process_std: :math:`\sigma_\eta`, added to position and velocity each step.
         horizon: ``T`` in seconds; dt: :math:`\Delta t` in seconds; ``K = T/\Delta t`` steps.
+        softening: interaction softening radius in metres (bounded forces when agents nearly
+            coincide, :func:`~dslearn.models.social_force.soft_distance`).
     """
 
     def __init__(
@@ -59,12 +61,13 @@ class SocialForceScenario:
         horizon: float = 3.0,
         dt: float = 0.25,
         area: Sequence[float] = (0.0, 8.0, 0.0, 8.0),
+        softening: float = SOFTENING,
     ):
         check_positive("scenario.dt", dt)
         check_positive("scenario.horizon", horizon)
         check_positive("scenario.start_size", start_size, strict=False)
         check_positive("scenario.process_std", process_std, strict=False)
-        self.sfm = SocialForce(desired_velocities, tau, alpha, beta, noise_std=max(process_std, 1e-12))
+        self.sfm = SocialForce(desired_velocities, tau, alpha, beta, noise_std=max(process_std, 1e-12), softening=softening)
         self.num_agents = self.sfm.num_agents
         corners = torch.as_tensor(start_corners, dtype=torch.float64)
         if corners.shape != (self.num_agents, 2):

@@ -58,7 +58,7 @@ from ..errors import ConfigError, as_list, check_choice, check_positive
 from ..models import ConstantVelocity, LinearPositionObservation
 from ..models.base import MotionModel
 from ..models.gp import OnlineGP
-from ..models.social_force import social_force_acceleration
+from ..models.social_force import SocialForce
 from ..sim.network import SensorNetwork
 from ..sim.real import arena_network, scene_extent
 from ..sim.scenario import measure
@@ -78,43 +78,13 @@ FIT_ON = ("truth", "fused")
 # --------------------------------------------------------------------------------------------
 # SFM with per-episode desired velocities, and its fit
 # --------------------------------------------------------------------------------------------
-class EpisodeSocialForce(MotionModel):
-    r"""Social force model (Eq. 3–4, :func:`~dslearn.models.social_force.social_force_acceleration`)
-    with shared :math:`(\tau, \alpha, \beta)` and a desired velocity per episode and agent.
-
-    ``desired`` is ``(B, A, 2)`` and broadcasts against states ``(*S, B, 4A)``; set it with
-    :meth:`set_desired` before tracking / rolling out a batch of episodes.
-    """
-
-    def __init__(self, num_agents: int, tau: float = 1.0, alpha: float = 0.0, beta: float = 1.0, noise_std: float = 0.1):
-        super().__init__()
-        check_positive("task.sfm.noise_std", noise_std)
-        self.num_agents = int(num_agents)
-        self.state_dim = 4 * self.num_agents
-        self.noise_std = float(noise_std)
-        self.tau = torch.tensor(float(tau), dtype=torch.float64)
-        self.alpha = torch.tensor(float(alpha), dtype=torch.float64)
-        self.beta = torch.tensor(float(beta), dtype=torch.float64)
-        self.desired = torch.zeros(1, self.num_agents, 2, dtype=torch.float64)
-
-    def set_desired(self, desired: Tensor) -> "EpisodeSocialForce":
-        self.desired = desired
-        return self
-
-    def params(self) -> dict[str, float]:
-        return {"tau": float(self.tau), "alpha": float(self.alpha), "beta": float(self.beta)}
-
-    def forward(self, x: Tensor, ctx: StepContext) -> Tensor:
-        ag = agents(x)
-        pos, vel = ag[..., POS], ag[..., VEL]
-        a = self.num_agents
-        per = lambda v: v.to(x).reshape(1).expand(a)  # noqa: E731
-        acc = social_force_acceleration(pos, vel, self.desired.to(x), per(self.tau), per(self.alpha), per(self.beta))
-        return joint(torch.cat([pos + vel * ctx.dt, vel + acc * ctx.dt], dim=-1))
-
-    def noise_cov(self, x: Tensor, ctx: StepContext) -> Tensor:
-        q = self.noise_std**2 * torch.eye(self.state_dim, dtype=x.dtype, device=x.device)
-        return q.expand(*x.shape[:-1], *q.shape)
+def episode_social_force(num_agents: int, tau: float = 1.0, alpha: float = 0.0, beta: float = 1.0,
+                         noise_std: float = 0.1) -> SocialForce:
+    r"""The social force model of :mod:`dslearn.models.social_force` (the same code, bounded
+    interactions included) with shared :math:`(\tau, \alpha, \beta)`; each episode's desired
+    velocities are set with :meth:`~dslearn.models.social_force.SocialForce.set_desired`
+    ``(B, A, 2)`` before tracking or rolling out a batch of episodes."""
+    return SocialForce([[0.0, 0.0]] * int(num_agents), tau, alpha, beta, noise_std)
 
 
 def desired_velocity(states: Tensor, desired_steps: int = 1) -> Tensor:
@@ -122,7 +92,7 @@ def desired_velocity(states: Tensor, desired_steps: int = 1) -> Tensor:
     return agents(states[:, :desired_steps])[..., VEL].mean(1)
 
 
-def _rollout_error(model: EpisodeSocialForce, states: Tensor, ctx: StepContext) -> Tensor:
+def _rollout_error(model: SocialForce, states: Tensor, ctx: StepContext) -> Tensor:
     """Mean position error of the roll-out from ``states[:, 0]`` (differentiable)."""
     x = states[:, 0]
     errs = []
@@ -161,14 +131,14 @@ def fit_social_force(
     states = states.detach().to(torch.float64)
     a = states.shape[-1] // 4
     ctx = StepContext(dt=float(dt))
-    model = EpisodeSocialForce(a).set_desired(desired_velocity(states, desired_steps))
+    model = episode_social_force(a).set_desired(desired_velocity(states, desired_steps))
     best, best_loss = None, math.inf
     taus = sorted((float(v) for v in tau_grid if float(v) >= dt - 1e-12), reverse=True) or [float(dt)]
     with torch.no_grad():
         for tau in taus:  # largest first: where the error does not depend on tau, keep the weakest relaxation
             for alpha in alpha_grid:
                 for beta in beta_grid:
-                    model.tau, model.alpha, model.beta = (torch.tensor(float(v), dtype=torch.float64) for v in (tau, alpha, beta))
+                    model.set_parameters(float(tau), float(alpha), float(beta))
                     loss = float(_rollout_error(model, states, ctx))
                     if loss < best_loss:
                         best, best_loss = (float(tau), float(alpha), float(beta)), loss
@@ -178,7 +148,7 @@ def fit_social_force(
     opt = torch.optim.Adam([log_tau, alpha, log_beta], lr=refine_lr)
     for _ in range(int(refine_iters)):
         opt.zero_grad()
-        model.tau, model.alpha, model.beta = log_tau.exp(), alpha, log_beta.exp()
+        model.set_parameters(log_tau.exp(), alpha, log_beta.exp())
         loss = _rollout_error(model, states, ctx)
         if not torch.isfinite(loss):
             break
@@ -189,7 +159,7 @@ def fit_social_force(
             log_tau.clamp_(math.log(dt), math.log(1e3))
             log_beta.clamp_(math.log(1e-2), math.log(1e2))
     with torch.no_grad():
-        model.tau, model.alpha, model.beta = log_tau.exp(), alpha.detach(), log_beta.exp()
+        model.set_parameters(log_tau.exp(), alpha.detach(), log_beta.exp())
         refined = float(_rollout_error(model, states, ctx))
     if math.isfinite(refined) and refined < best_loss:
         best, best_loss = (float(log_tau.detach().exp()), float(alpha.detach()), float(log_beta.detach().exp())), refined
@@ -319,7 +289,7 @@ class Data:
     test: Episodes
     network: SensorNetwork
     ctx: StepContext
-    centre: Tensor
+    area: tuple[float, float, float, float]  # (xmin, xmax, ymin, ymax): where the diffuse prior puts the targets
     num_agents: int
     info: dict
 
@@ -363,8 +333,7 @@ def real_data(cfg: DictConfig, scene_name: str, seed: int, max_train: int, dtype
     gen = torch.Generator().manual_seed(int(seed) * 1_000_003 + 11)
     test = measure(te.states, net, gen)
     train = measure(tr.states, net, gen)
-    ext = scene_extent(torch.tensor(scene.df[["x", "y"]].to_numpy()))
-    centre = torch.tensor([(ext[0] + ext[1]) / 2, (ext[2] + ext[3]) / 2], dtype=dtype, device=device)
+    ext = tuple(float(v) for v in scene_extent(torch.tensor(scene.df[["x", "y"]].to_numpy())))
     info = {
         "episodes_total": len(eps),
         "train_pool": len(train_idx),
@@ -375,7 +344,7 @@ def real_data(cfg: DictConfig, scene_name: str, seed: int, max_train: int, dtype
     }
     return Data(
         scene_name, "real", _episodes_to(train, dtype, device), _episodes_to(test, dtype, device), net,
-        StepContext(dt=float(t.dt)), centre, int(t.agents), info,
+        StepContext(dt=float(t.dt)), ext, int(t.agents), info,
     )
 
 
@@ -386,12 +355,10 @@ def synthetic_data(cfg: DictConfig, seed: int, max_train: int, dtype, device) ->
     scenario, net = build_scenario(cfg.scenario), build_network(cfg.network)
     test = scenario.sample(int(cfg.task.test_episodes), net, torch.Generator().manual_seed(seed * 1_000_003 + 1))
     train = scenario.sample(max_train, net, torch.Generator().manual_seed(seed * 1_000_003 + 2))
-    a = scenario.area
-    centre = torch.tensor([(a[0] + a[1]) / 2, (a[2] + a[3]) / 2], dtype=dtype, device=device)
     info = {"episodes_total": max_train + int(cfg.task.test_episodes), "scene_dt": scenario.dt, "test_meta": None}
     return Data(
         "synthetic", "synthetic", _episodes_to(train, dtype, device), _episodes_to(test, dtype, device), net,
-        scenario.ctx(), centre, scenario.num_agents, info,
+        scenario.ctx(), tuple(scenario.area), scenario.num_agents, info,
     )
 
 
@@ -442,8 +409,8 @@ def _gp_name(cfg, cv_mean: bool) -> str:
     return f"{cfg.model.name}_cv" if cv_mean else str(cfg.model.name)
 
 
-def _init(cfg, data: Data, ep: Episodes):
-    return initial_belief(ep, data.network, data.ctx.dt, data.centre, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
+def _init(cfg, data: Data, ep: Episodes, fusion: Fusion):
+    return initial_belief(ep, data.network, data.ctx.dt, fusion, data.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
 
 
 @torch.no_grad()
@@ -452,16 +419,17 @@ def cm_fused(cfg: DictConfig, data: Data, ep: Episodes) -> Tensor:
     by their information, :math:`\hat y = (\sum_i \Omega_i)^{-1} \sum_i \Omega_i \hat y_i`,
     ``(B, K+1, Dx)``.
 
-    At t = 0 no fusion has happened yet and a node that did not see a target holds the vague
-    prior (scene centre); a plain node average would drag the first positions towards the
-    centre, the information weighting gives such a node almost no weight. From t = 1 on the
-    nodes agree closely after consensus, and the combination is close to their average.
+    The initial belief is fused by CM like every later step, and a node that learns nothing
+    about a target holds the diffuse prior (near-zero information): the information weighting
+    gives such a node almost no weight, where a plain node average would drag the estimate
+    towards the prior's mean. After consensus the nodes agree closely, and the combination is
+    close to their average.
     """
     net = data.network
     fusion = _fusion(cfg, net, "cm")
     lin = ConstantVelocity(data.num_agents, float(cfg.task.lin.noise_std))
     obs = LinearPositionObservation(net.meas_std)
-    res = track(ep, net, lin, obs, fusion, data.ctx, _init(cfg, data, ep))
+    res = track(ep, net, lin, obs, fusion, data.ctx, _init(cfg, data, ep, fusion))
     info = res.info.sum(0)
     q = (res.info @ res.mean.unsqueeze(-1)).sum(0)
     return torch.cholesky_solve(q, safe_cholesky(info)).squeeze(-1)
@@ -474,7 +442,7 @@ def train_online(cfg, model, data: Data, fusion: Fusion, upto: int, seen: int) -
     fit_every = getattr(model, "fit_every", 0)
     for k in range(seen, upto):
         ep = data.train.select(slice(k, k + 1))
-        track(ep, data.network, model, obs, fusion, data.ctx, _init(cfg, data, ep), learn=True, learn_gate_std=gate)
+        track(ep, data.network, model, obs, fusion, data.ctx, _init(cfg, data, ep, fusion), learn=True, learn_gate_std=gate)
         if fit_every and (k + 1) % fit_every == 0:
             model.fit()
     return upto
@@ -508,7 +476,7 @@ def _rows(metrics: dict[str, Tensor], net: SensorNetwork, **keys) -> pd.DataFram
 def evaluate_tracking(cfg, model, data: Data, fusion: Fusion, per_node: bool) -> dict[str, Tensor]:
     """Tracking metrics on the test episodes plus the prediction error (Table II/IV protocol)."""
     obs = LinearPositionObservation(data.network.meas_std)
-    res = track(data.test, data.network, model, obs, fusion, data.ctx, _init(cfg, data, data.test))
+    res = track(data.test, data.network, model, obs, fusion, data.ctx, _init(cfg, data, data.test, fusion))
     m = tracking_metrics(res, data.test.states)
     m["pred_err"] = prediction_error(model, data.test.states, data.network.num_nodes, data.ctx, per_node=per_node)
     return m
@@ -593,14 +561,14 @@ def position_rows(traj: Tensor, src: Data, n: int, **keys) -> pd.DataFrame:
 # --------------------------------------------------------------------------------------------
 # protocols
 # --------------------------------------------------------------------------------------------
-def _fit_sfm(cfg, data: Data, n_train: int, fused: Tensor | None) -> tuple[EpisodeSocialForce, dict, float]:
+def _fit_sfm(cfg, data: Data, n_train: int, fused: Tensor | None) -> tuple[SocialForce, dict, float]:
     s = cfg.task.sfm
     src = data.train.states[:n_train] if s.fit_on == "truth" else fused[:n_train]
     params, loss = fit_social_force(
         src.cpu(), data.ctx.dt, int(s.desired_steps), tuple(s.grid.tau), tuple(s.grid.alpha), tuple(s.grid.beta),
         int(s.refine_iters), float(s.refine_lr),
     )
-    model = EpisodeSocialForce(data.num_agents, noise_std=float(s.noise_std), **params)
+    model = episode_social_force(data.num_agents, noise_std=float(s.noise_std), **params)
     model.set_desired(desired_velocity(data.test.states, int(s.desired_steps)))
     return model, params, loss
 

@@ -19,10 +19,10 @@ from typing import Any
 import pandas as pd
 import torch
 from omegaconf import DictConfig
-from tqdm.auto import tqdm
 
 from ..consensus.fusion import FUSIONS, make_fusion
 from ..consensus.weights import consensus_weights
+from ..progress import evaluation_bar, training_bar
 from ..errors import ConfigError, check_choice, check_positive
 from ..models import (
     ConstantVelocity,
@@ -32,6 +32,7 @@ from ..models import (
     SocialForce,
 )
 from ..models.base import MotionModel, ObservationModel
+from ..models.social_force import SOFTENING
 from ..sim.network import SensorNetwork, make_network
 from ..sim.scenario import SocialForceScenario
 from ..tracker import initial_belief, prediction_error, track, tracking_metrics
@@ -62,6 +63,7 @@ def build_scenario(c: Any) -> SocialForceScenario:
         horizon=c.horizon,
         dt=c.dt,
         area=list(c.area),
+        softening=float(c.get("softening", SOFTENING)),
     )
 
 
@@ -96,7 +98,7 @@ def build_motion_model(c: Any, scenario: SocialForceScenario, num_nodes: int, dt
         return ConstantVelocity(scenario.num_agents, c.noise_std).to(device)
     if kind == "sfm":
         s = scenario.sfm
-        return SocialForce(s.desired.tolist(), s.tau.tolist(), s.alpha.tolist(), s.beta.tolist(), c.noise_std).to(device)
+        return SocialForce(s.desired.tolist(), s.tau.tolist(), s.alpha.tolist(), s.beta.tolist(), c.noise_std, s.softening).to(device)
     if kind == "gp_aggregated":
         from ..models.aggregated import build_aggregated_motion
 
@@ -118,6 +120,7 @@ def build_motion_model(c: Any, scenario: SocialForceScenario, num_nodes: int, dt
         device=device,
         # scalable variants (dslearn.models.sparse; conf/model/gp_{window,sgpr,ssgp}.yaml)
         variant=str(c.get("variant", "exact")),
+        noise_fading=float(c.get("noise_fading", 0.9)),
         **{k: c[k] for k in ("window", "inducing", "features", "seed") if c.get(k) is not None},
     )
 
@@ -233,11 +236,9 @@ class YuStudy:
         dtype, device = DTYPES[c.dtype], _resolve_device(c.device)
         ctx = scenario.ctx()
         test, train = self.sample(scenario, network, dtype, device)
-        centre = torch.tensor([(scenario.area[0] + scenario.area[1]) / 2, (scenario.area[2] + scenario.area[3]) / 2], dtype=dtype, device=device)
-        pooled = fusion.name == "centralized"
 
         def init(ep):
-            return initial_belief(ep, network, ctx.dt, centre, c.filter.prior_pos_std, c.filter.prior_vel_std, pooled)
+            return initial_belief(ep, network, ctx.dt, fusion, scenario.area, c.filter.prior_pos_std, c.filter.prior_vel_std)
 
         learnable = model.learnable or obs.learnable
         gate = c.filter.get("learn_gate_std")
@@ -245,7 +246,8 @@ class YuStudy:
         frames, seen = [], 0
         t0 = time.perf_counter()
         jitter0 = JITTER.count
-        bar = tqdm(total=max(checkpoints), desc=f"train {c.model.name}/{fusion.name}", disable=not progress or not learnable)
+        bar = training_bar(max(checkpoints), scenario.steps, c.model, enable=progress and learnable, desc=f"train {c.model.name}/{fusion.name}")
+        tbar = evaluation_bar(checkpoints, scenario.steps, c.model, enable=progress, learnable=learnable, desc="test", position=1)
         for k in checkpoints:
             while learnable and seen < k:
                 ep = train.select(slice(seen, seen + 1))
@@ -255,11 +257,11 @@ class YuStudy:
                 if getattr(model, "fit_every", 0) and seen % model.fit_every == 0:
                     model.fit()
             frames.append(self._evaluate(test, network, model, obs, fusion, ctx, init(test), k, scenario))
+            tbar.update(1)
             log.info("evaluated %s/%s after %d training episodes (%.1fs)", c.model.name, fusion.name, k, time.perf_counter() - t0)
         bar.close()
+        tbar.close()
         df = pd.concat(frames, ignore_index=True)
-        if JITTER.count > jitter0:
-            log.warning("jitter was added to %d near-singular matrices (max %.3g)", JITTER.count - jitter0, JITTER.max_jitter)
         df.attrs["jitter_events"] = JITTER.count - jitter0
         self.model, self.network, self.fusion = model, network, fusion
         return df

@@ -150,9 +150,6 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     network = build_network(cfg.network)
     s = network.num_nodes
     ctx = scenario.ctx()
-    centre = torch.tensor(
-        [(scenario.area[0] + scenario.area[1]) / 2, (scenario.area[2] + scenario.area[3]) / 2], dtype=dtype, device=device
-    )
     steps = int(round(scenario.horizon / scenario.dt)) if hasattr(scenario, "horizon") else None
     models = {m: load_model_cfg(m) for m in t.models}
     grid = settings(t)
@@ -180,7 +177,7 @@ def run(cfg: DictConfig) -> pd.DataFrame:
         for mname in t.models:
             for fname in t.fusions:
                 k += 1
-                df = _cell(cfg, t, st, si, scenario, network, ctx, centre, models[mname], fname, faulty, dtype, device, seed)
+                df = _cell(cfg, t, st, si, scenario, network, ctx, models[mname], fname, faulty, dtype, device, seed)
                 frames.append(df)
                 bar.update(1)
                 te = df[(df.metric == "track_err") & (df.node == "alive")]["value"].mean()
@@ -197,17 +194,16 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     return out
 
 
-def _cell(cfg, t, st, si, scenario, network, ctx, centre, mcfg, fname, faulty, dtype, device, seed) -> pd.DataFrame:
+def _cell(cfg, t, st, si, scenario, network, ctx, mcfg, fname, faulty, dtype, device, seed) -> pd.DataFrame:
     s = network.num_nodes
     model = build_motion_model(mcfg, scenario, s, dtype, device)
     obs = build_observation(cfg.observation, s, dtype, device)
     base = make_fusion(fname, consensus_weights(network.adjacency, "uniform"), cfg.consensus.iterations, cfg.consensus.omega)
     fusion = FaultyFusion(base, network.adjacency, st["link_fail"], t.weights, seed=seed * 1_000_003 + 31 * si + 7)
-    pooled = fname == "centralized"
     gate = st["gate_prob"]
 
     def init(ep):
-        return initial_belief(ep, network, ctx.dt, centre, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std, pooled)
+        return initial_belief(ep, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
 
     train, alive_tr = faulty["train"]
     test, alive_te = faulty["test"]
