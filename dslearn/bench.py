@@ -23,8 +23,9 @@ Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
   dtype      float32 vs float64 on the same seeds (time and accuracy of the Yu study).
   studies    wall time of the other studies' default runs (``dslearn-run ...`` subprocesses).
 
-Outputs in ``--out`` (default ``benchmarks/``): ``bench.csv``, ``bench.md`` (with machine info),
-``gp_step_cost.png``. ``--quick`` runs a reduced set in a few minutes (without ``studies`` and
+Outputs in ``--out`` (default: a new folder ``bench-results/<date>_<time>`` in the current
+directory, so the committed ``benchmarks/`` tables are only rewritten when asked for with
+``--out benchmarks``): ``bench.csv``, ``bench.md`` (with machine info), ``gp_step_cost.png``. ``--quick`` runs a reduced set in a few minutes (without ``studies`` and
 ``fantasy`` unless named).
 """
 
@@ -243,8 +244,7 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
     scenario, network, model, obs, fusion = study.build()
     ctx = scenario.ctx()
     ep = _to(scenario.sample(1, network, torch.Generator().manual_seed(2)), DTYPES["float64"], device)
-    centre = torch.tensor([4.0, 4.0], dtype=torch.float64, device=device)
-    init = initial_belief(ep, network, ctx.dt, centre, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
+    init = initial_belief(ep, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
     t0 = time.perf_counter()
     res = track(ep, network, model, obs, fusion, ctx, init, learn=True)
     if device.startswith("cuda"):
@@ -429,9 +429,12 @@ def main(argv=None) -> None:
     p.add_argument("--workers", type=int, default=2, help="concurrent processes for the protocol / dtype items")
     p.add_argument("--threads", type=int, default=1, help="torch threads per process")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--out", default="benchmarks")
+    p.add_argument("--out", default=None, help="output folder (default: a new bench-results/<date>_<time>)")
     p.add_argument("--merge", nargs="+", metavar="DIR", help="only merge the bench.csv of earlier runs into --out")
     a = p.parse_args(argv)
+    if a.out is None:
+        a.out = str(Path("bench-results") / time.strftime("%Y-%m-%d_%H-%M-%S"))
+    print(f"dslearn-bench: writing to {a.out}", flush=True)
     if a.merge:
         return merge(a.merge, a.out)
     workloads = a.workloads or [w for w in ALL if not (a.quick and w in ("studies", "fantasy"))]

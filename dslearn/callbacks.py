@@ -25,12 +25,12 @@ import pandas as pd
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from .io import META_FILE, RESULTS_FILE, SWEEP_TABLE, atomic_write_csv, atomic_write_text, check_complete
+from .io import META_FILE, RESULTS_FILE, SWEEP_TABLE, RunDirBusy, RunLock, atomic_write_csv, atomic_write_text, check_complete
 
 log = logging.getLogger("dslearn.sweep")
 
 #: overrides that do not change results: not turned into columns
-RUNTIME_KEYS = {"resume", "progress", "print_table", "threads"}
+RUNTIME_KEYS = {"resume", "progress", "print_table", "threads", "max_memory_gb"}
 
 
 def parse_overrides(overrides: list[str]) -> dict[str, str]:
@@ -52,10 +52,10 @@ def parse_overrides(overrides: list[str]) -> dict[str, str]:
 
 def _job_overrides(job_dir: Path) -> list[str]:
     try:
-        meta = json.loads((job_dir / META_FILE).read_text())
-        if meta.get("overrides") is not None:
+        meta = json.loads((job_dir / META_FILE).read_text(encoding="utf-8"))
+        if isinstance(meta, dict) and meta.get("overrides") is not None:
             return list(meta["overrides"])
-    except (OSError, json.JSONDecodeError):
+    except (OSError, ValueError, TypeError):  # ValueError: bad JSON or not UTF-8
         pass
     p = job_dir / ".hydra" / "overrides.yaml"
     if p.is_file():
@@ -91,9 +91,11 @@ def gather_sweep(sweep_dir: str | Path, write: bool = True) -> tuple[pd.DataFram
     for d in _job_dirs(sweep_dir):
         status = {}
         try:
-            status = json.loads((d / "status.json").read_text())
-        except (OSError, json.JSONDecodeError):
+            status = json.loads((d / "status.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
             pass
+        if not isinstance(status, dict):
+            status = {}
         ok, why = check_complete(d)
         if not ok:
             if status.get("status") == "failed":
@@ -102,7 +104,7 @@ def gather_sweep(sweep_dir: str | Path, write: bool = True) -> tuple[pd.DataFram
                 problems.append(f"{d.name}: failed: {status.get('error', '?')}")
             else:
                 counts["incomplete"] += 1
-                problems.append(f"{d.name}: {why}")
+                problems.append(f"{d.name}: {'interrupted; ' if status.get('status') == 'interrupted' else ''}{why}")
             if (d / RESULTS_FILE).exists():
                 msg = f"ignoring broken result in {d}: {why}"
                 warnings.warn(msg, stacklevel=2)
@@ -164,12 +166,22 @@ class GatherResults(Callback):
     def __init__(self, fail_exit: bool = True) -> None:
         self.fail_exit = fail_exit
         self._t0: float | None = None
+        self._lock: RunLock | None = None
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._t0 = time.perf_counter()
         sweep_dir = Path(str(config.hydra.sweep.dir))
+        existed = sweep_dir.is_dir()
+        try:  # one sweep at a time in a sweep folder (a second one would overwrite the first's jobs)
+            self._lock = RunLock(sweep_dir).acquire()
+        except RunDirBusy as e:
+            import sys
+
+            log.error("%s", e)
+            print(f"dslearn-run: sweep folder busy: {' '.join(str(e).split())}", file=sys.stderr, flush=True)
+            raise SystemExit(2)
         if config.get("resume"):
-            if sweep_dir.is_dir():
+            if existed:
                 n = sum(1 for d in _job_dirs(sweep_dir) if check_complete(d)[0])
                 log.info("resume: %s holds %d complete job result(s); jobs with the same overrides are skipped", sweep_dir, n)
             else:
@@ -194,5 +206,8 @@ class GatherResults(Callback):
         log.info(line)
         for p in s["problems"]:
             log.warning("  %s", p)
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
         if self.fail_exit and s["failed"]:
             raise SystemExit(2 if s["config_error"] else 1)

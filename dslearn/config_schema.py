@@ -9,10 +9,16 @@ and out-of-range values raise :class:`dslearn.errors.ConfigError` naming the fie
 What is checked:
 
 * root keys (every task): ``seed`` (int >= 0), ``device`` (cpu | cuda[:n]), ``dtype``,
-  ``progress`` (bool or null), ``threads`` (int >= 1 or null), ``print_table``, ``resume``,
-  ``study`` (str); an unknown top-level key fails (known: these, ``task``, and every config group
-  under ``conf/``, so groups added later are accepted automatically);
-* ``task.entry`` / ``task.name`` (every task); the rest of ``task`` is the study's to validate;
+  ``progress`` (bool or null), ``threads`` (int in 1..CPU count, or null), ``print_table``,
+  ``resume``, ``study`` (str), ``max_memory_gb`` (the memory limit of the resource guard, set
+  with ``+max_memory_gb=...``); an unknown top-level key fails (known: these, ``task``, and
+  every config group under ``conf/``, so groups added later are accepted automatically);
+* ``task.entry`` must be one of the registered study entries (:data:`TASK_ENTRIES`: only the
+  project's own studies are ever called) and ``task.name`` a non-empty string; the rest of
+  ``task`` is the study's to validate;
+* resource guard (core study): the estimated peak memory (:func:`estimate_core_memory`) must
+  stay under ``max_memory_gb`` (default: 75 % of this machine's memory), so a run that would
+  swamp the machine is refused up front with the estimate in the message;
 * for the core study (``task.name`` = yu or yu_faults): ``scenario``, ``network``, ``model``,
   ``observation``, ``consensus``, ``data``, ``filter`` — closed schemas (unknown keys fail) with
   range checks. Other tasks' groups (tracker, aggregation, gp_input, lstm, scenario s1..s3, ...)
@@ -21,6 +27,9 @@ What is checked:
 
 from __future__ import annotations
 
+import json
+import math
+import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, List, Optional
@@ -28,10 +37,24 @@ from typing import Any, List, Optional
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from .errors import ConfigError, check_choice, check_positive
+from .errors import ConfigError, check_finite, check_choice, check_positive
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 CORE_TASKS = ("yu", "yu_faults")
+
+#: the registry of study entries: ``task.name`` -> ``task.entry``. ``dslearn-run`` calls only
+#: these (``task.entry`` must be one of the values), never an arbitrary importable callable.
+TASK_ENTRIES: dict[str, str] = {
+    "yu": "dslearn.studies.yu:run",
+    "yu_faults": "dslearn.studies.yu_faults:run",
+    "ethucy_tracking": "dslearn.studies.ethucy_tracking:run",
+    "ethucy_forecast": "dslearn.studies.ethucy_forecast:run",
+    "liu_dgpt": "dslearn.studies.liu_dgpt:run",
+    "jiang_fg": "dslearn.studies.jiang_fg:run",
+    "braga_tbn": "dslearn.studies.braga_tbn:run",
+}
+#: share of the machine's memory a run may plan to use unless ``+max_memory_gb=...`` says otherwise
+MEMORY_SHARE = 0.75
 
 
 @dataclass
@@ -44,6 +67,7 @@ class RootSchema:
     threads: Optional[int] = 1
     print_table: bool = True
     resume: bool = False
+    max_memory_gb: Optional[float] = None  # resource guard limit (null = MEMORY_SHARE of the machine)
 
 
 @dataclass
@@ -65,6 +89,7 @@ class ScenarioSchema:
     horizon: float = 3.0
     dt: float = 0.25
     area: List[float] = field(default_factory=lambda: [0.0, 8.0, 0.0, 8.0])
+    softening: float = 0.2  # m, interaction softening radius of the social force
 
 
 @dataclass
@@ -91,6 +116,7 @@ class ModelSchema:
     lengthscale: Optional[float] = None
     mean: Optional[str] = None
     noise: Optional[str] = None
+    noise_fading: Optional[float] = None
     jacobian: Optional[str] = None
     fit_every: Optional[int] = None
     fit_iters: Optional[int] = None
@@ -136,9 +162,9 @@ class DataSchema:
 
 @dataclass
 class FilterSchema:
-    prior_pos_std: float = 4.0
-    prior_vel_std: float = 2.0
-    learn_gate_std: Optional[float] = None
+    prior_pos_std: float = 1000.0
+    prior_vel_std: float = 1000.0
+    learn_gate_std: Optional[float] = 2.0
 
 
 GROUP_SCHEMAS = {
@@ -175,9 +201,49 @@ def _field_error(prefix: str, e: OmegaConfBaseException) -> ConfigError:
     return ConfigError(f"{full}: {msg}")
 
 
+_SCHEMA_CACHE: dict[tuple, Any] = {}
+
+
 def check_schema(node: Any, schema: type, prefix: str) -> DictConfig:
     """Merge ``node`` (a dict/DictConfig) into ``schema``; ConfigError naming the field on a
-    wrong type or an unknown key. Returns the typed, merged config."""
+    wrong type or an unknown key. Returns the typed, merged config (a copy the caller owns)."""
+    import copy
+
+    out = copy.deepcopy(_checked(node, schema, prefix))
+    OmegaConf.set_readonly(out, False)
+    return out
+
+
+def _checked(node: Any, schema: type, prefix: str) -> DictConfig:
+    """:func:`check_schema`, memoised by the node's content (read-only result, shared):
+    checking every job of a sweep repeats the same groups many times, and a structured merge
+    costs ~10 ms."""
+    if isinstance(node, DictConfig):
+        try:
+            node = OmegaConf.to_container(node, resolve=True)
+        except OmegaConfBaseException as e:
+            raise _field_error(prefix, e) from None
+    try:
+        key = (schema, prefix, json.dumps(node, sort_keys=True, default=repr))
+    except (TypeError, ValueError):
+        key = None
+    hit = _SCHEMA_CACHE.get(key) if key is not None else None
+    if hit is None:
+        try:
+            hit = _check_schema(node, schema, prefix)
+            OmegaConf.set_readonly(hit, True)
+        except ConfigError as e:
+            hit = e
+        if key is not None:
+            if len(_SCHEMA_CACHE) > 4096:
+                _SCHEMA_CACHE.clear()
+            _SCHEMA_CACHE[key] = hit
+    if isinstance(hit, ConfigError):
+        raise ConfigError(str(hit))
+    return hit
+
+
+def _check_schema(node: Any, schema: type, prefix: str) -> DictConfig:
     if node is None:
         raise ConfigError(f"{prefix} is missing (null); expected a mapping with keys {[f.name for f in fields(schema)]}")
     if isinstance(node, DictConfig):
@@ -207,26 +273,144 @@ def validate_config(cfg: DictConfig) -> None:
     if unknown:
         raise ConfigError(f"unknown top-level key(s) {unknown}; known keys: {sorted(known_root_keys() - {'hydra'})}")
     root = {f.name: cfg[f.name] for f in fields(RootSchema) if f.name in cfg}
-    r = check_schema(root, RootSchema, "")
+    r = _checked(root, RootSchema, "")
     if r.seed < 0:
         raise ConfigError(f"seed={r.seed} must be an integer >= 0")
     check_choice("device", str(r.device).split(":")[0], ("cpu", "cuda"))
     check_choice("dtype", r.dtype, ("float64", "float32"))
-    if r.threads is not None and r.threads < 1:
-        raise ConfigError(f"threads={r.threads} must be >= 1 (or null for torch's default)")
+    ncpu = cpu_count()
+    if r.threads is not None and not 1 <= r.threads <= ncpu:
+        raise ConfigError(f"threads={r.threads} must be in 1..{ncpu} (this machine's CPU count), or null for torch's default")
+    if r.max_memory_gb is not None:
+        check_positive("max_memory_gb", r.max_memory_gb)
     if "task" not in cfg or cfg.task is None:
         raise ConfigError("task is missing; choose one with task=<name> or experiment=<study>")
     for k in ("entry", "name"):
         v = cfg.task.get(k)
         if not isinstance(v, str) or not v:
             raise ConfigError(f"task.{k}={v!r} must be a non-empty string")
+    check_entry(cfg.task.entry)
     if cfg.task.name in CORE_TASKS:
         validate_core(cfg)
+        check_memory(cfg, r.max_memory_gb)
+
+
+def check_entry(entry) -> None:
+    """ConfigError unless ``entry`` is a registered study entry (:data:`TASK_ENTRIES`)."""
+    allowed = sorted(set(TASK_ENTRIES.values()))
+    if entry not in allowed:
+        raise ConfigError(
+            f"task.entry={entry!r} is not a registered study entry; choose one of {allowed} "
+            f"(or pick a study with task=<name> / experiment=<study>)"
+        )
+
+
+def cpu_count() -> int:
+    """CPUs this process may run on (the affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def machine_memory_bytes() -> int | None:
+    """Physical memory, or the container's memory limit (cgroup v2/v1) where that is lower."""
+    total = None
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, OSError, ValueError):
+        pass
+    for p in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            v = Path(p).read_text().strip()
+        except OSError:
+            continue
+        if v.isdigit() and int(v) < (1 << 60):
+            total = int(v) if total is None else min(total, int(v))
+    return total
+
+
+def memory_limit_gb(max_memory_gb: float | None) -> tuple[float, str]:
+    """The guard's limit in GB and a phrase saying where it comes from."""
+    if max_memory_gb is not None:
+        return float(max_memory_gb), f"max_memory_gb={float(max_memory_gb):g}"
+    total = machine_memory_bytes()
+    if total is None:
+        return 64.0, "the default max_memory_gb=64 (this machine's memory is unknown)"
+    return MEMORY_SHARE * total / 1e9, f"{MEMORY_SHARE:.0%} of this machine's {total / 1e9:.1f} GB"
+
+
+def estimate_core_memory(cfg: DictConfig) -> dict[str, float]:
+    """Estimated peak memory in bytes of a core-study (Yu) run, by part (float64 = 8 bytes).
+
+    * ``episodes``: the training and test episodes, all simulated at once: states
+      ``(B, K+1, 4m)`` (and the stacked trajectory, twice), measurements and noise
+      ``(S, B, K+1, m, 2)``;
+    * ``tracking``: the test batch's stored means and information matrices and the
+      covariances recovered from them for the metrics, ``5 x (S, B_test, K+1, 4m, 4m)``
+      (measured: 2000 test episodes of the Yu scenario with ``model=lin`` peak 596 MB above
+      the idle process, this term 666 MB);
+    * ``gp``: the online GP of a learning model: per node a ``cap x cap`` Cholesky buffer
+      (``cap`` = data points ``n = train_episodes x K`` rounded up to 128 rows, or the
+      window / inducing / feature budget of a scalable variant), twice while the buffer
+      grows, and the test predictions' kernel rows ``(S, B_test, n)``; a learned
+      observation GP (``observation=gp``) adds its own (measured: 150 training + 50 test
+      episodes of ``gp_increment`` peak 596 MB above the idle process, this term 776 MB).
+
+    ``K`` = horizon / dt steps, ``m`` agents, ``S`` nodes. The terms are upper-bound shaped;
+    fixed costs (the Python process, torch: ~0.5 GB) are not included.
+    """
+    sc, nw, da = cfg.scenario, cfg.network, cfg.data
+    t = cfg.task
+    k = int(round(float(sc.horizon) / float(sc.dt)))
+    m = len(sc.desired_velocities)
+    d = 4 * m
+    s = int(nw.num_sensors) + int(nw.num_comm)
+    b_tr = int(t.get("train_episodes", da.train_episodes) if t.name == "yu_faults" else da.train_episodes)
+    b_te = int(t.get("test_episodes", da.test_episodes) if t.name == "yu_faults" else da.test_episodes)
+    f8 = 8.0
+    per_ep = (k + 1) * (3 * d + 5 * s * m) * f8
+    out = {"episodes": (b_tr + b_te) * per_ep, "tracking": 5.0 * s * b_te * (k + 1) * d * d * f8}
+    mc = cfg.model
+    kind = str(mc.get("kind", None) or mc.get("name", ""))
+    learns_f = kind.startswith("gp")
+    learns_h = str(cfg.observation.get("name", "linear")) == "gp"
+    n = b_tr * k
+    gp = 0.0
+    if learns_f:
+        variant = str(mc.get("variant", None) or "exact")
+        budget = {"window": mc.get("window"), "sgpr": mc.get("inducing"), "ssgp": mc.get("features")}.get(variant)
+        cap = min(n, int(budget)) if budget else n
+        cap = 128 * math.ceil(max(cap, 1) / 128) + 256
+        gp += s * (2.0 * cap * cap + 3 * cap * d) * f8 + s * b_te * n * f8 * 2
+    if learns_h:
+        cap = 128 * math.ceil(max(n, 1) / 128) + 256
+        gp += s * (2.0 * cap * cap + 3 * cap * 2 * m) * f8 + s * b_te * n * f8 * 2
+    out["gp"] = gp
+    return out
+
+
+def check_memory(cfg: DictConfig, max_memory_gb: float | None = None) -> None:
+    """The resource guard: ConfigError when the estimated peak memory exceeds the limit."""
+    est = estimate_core_memory(cfg)
+    total = sum(est.values()) / 1e9
+    limit, where = memory_limit_gb(max_memory_gb)
+    if total > limit:
+        sc, da = cfg.scenario, cfg.data
+        part, big = max(est.items(), key=lambda kv: kv[1])
+        steps = int(round(float(sc.horizon) / float(sc.dt)))
+        raise ConfigError(
+            f"estimated peak memory {total:.3g} GB exceeds the limit of {limit:.3g} GB ({where}); "
+            f"largest part: {part} {big / 1e9:.3g} GB, from {len(sc.desired_velocities)} agents, "
+            f"{int(cfg.network.num_sensors) + int(cfg.network.num_comm)} nodes, "
+            f"{steps} steps (scenario.horizon/scenario.dt), data.train_episodes={da.train_episodes}, "
+            f"data.test_episodes={da.test_episodes}; make the run smaller or raise the limit with +max_memory_gb=<GB>"
+        )
 
 
 def validate_core(cfg: DictConfig) -> None:
     """Schemas and ranges of the core (Yu) study's groups."""
-    g = {name: check_schema(cfg.get(name), schema, name) for name, schema in GROUP_SCHEMAS.items()}
+    g = {name: _checked(cfg.get(name), schema, name) for name, schema in GROUP_SCHEMAS.items()}
     sc, nw, m, ob, co, da, fi = (g[k] for k in ("scenario", "network", "model", "observation", "consensus", "data", "filter"))
     # scenario
     for name in ("desired_velocities", "start_corners"):
@@ -245,7 +429,11 @@ def validate_core(cfg: DictConfig) -> None:
     _check_area("scenario.area", sc.area)
     for k in ("start_size", "dt", "horizon"):
         check_positive(f"scenario.{k}", sc[k])
+    for k in ("tau", "alpha", "beta"):
+        for j, v in enumerate(sc[k] if isinstance(sc[k], (list, tuple)) or hasattr(sc[k], "__len__") else [sc[k]]):
+            check_positive(f"scenario.{k}" + (f"[{j}]" if hasattr(sc[k], "__len__") else ""), v, strict=k != "alpha")
     check_positive("scenario.process_std", sc.process_std, strict=False)
+    check_positive("scenario.softening", sc.softening, strict=False)
     if sc.horizon < 2 * sc.dt:
         raise ConfigError(f"scenario.horizon={sc.horizon} must be >= 2 * scenario.dt={2 * sc.dt} (two steps initialise the filter)")
     # network
@@ -276,12 +464,23 @@ def validate_core(cfg: DictConfig) -> None:
     if m.mean is not None:
         check_choice("model.mean", m.mean, ("zero", "constant", "identity"))
     if m.noise is not None:
-        check_choice("model.noise", m.noise, ("latent", "predictive"))
+        check_choice("model.noise", m.noise, ("latent", "predictive", "adaptive"))
+    if m.noise_fading is not None and not 0.0 < m.noise_fading < 1.0:
+        raise ConfigError(f"model.noise_fading={m.noise_fading!r} must be in (0, 1)")
     if m.jacobian is not None:
         check_choice("model.jacobian", m.jacobian, ("closed_form", "autograd"))
     # observation
     check_choice("observation.name", ob.name, ("linear", "gp"))
     check_positive("observation.noise_std", ob.noise_std)
+    for k in ("outputscale", "lengthscale"):
+        if ob[k] is not None:
+            check_positive(f"observation.{k}", ob[k])
+    if ob.name == "gp":
+        for k in ("outputscale", "lengthscale", "mean", "noise"):
+            if ob[k] is None:
+                raise ConfigError(f"observation.{k} is null; observation=gp needs a value (see conf/observation/gp.yaml)")
+        check_choice("observation.mean", ob.mean, ("zero", "constant", "identity"))
+        check_choice("observation.noise", ob.noise, ("latent", "predictive"))
     # consensus
     from .consensus.fusion import FUSIONS
     from .consensus.weights import WEIGHT_METHODS
@@ -293,8 +492,8 @@ def validate_core(cfg: DictConfig) -> None:
     om = co.omega
     if isinstance(om, str):
         check_choice("consensus.omega", om, ("one", "nodes"))
-    elif isinstance(om, bool) or not isinstance(om, (int, float)) or not om > 0:
-        raise ConfigError(f"consensus.omega={om!r} must be > 0, 'one' or 'nodes'")
+    elif isinstance(om, bool) or not isinstance(om, (int, float)) or not 0 < om < float("inf"):
+        raise ConfigError(f"consensus.omega={om!r} must be > 0 and finite, 'one' or 'nodes'")
     # data
     if da.train_episodes < 0:
         raise ConfigError(f"data.train_episodes={da.train_episodes} must be an integer >= 0")
@@ -316,6 +515,8 @@ def validate_core(cfg: DictConfig) -> None:
 
 def _check_area(name: str, area) -> None:
     a = list(area)
+    if len(a) == 4:
+        check_finite(name, a)
     if len(a) != 4 or not (a[0] < a[1] and a[2] < a[3]):
         raise ConfigError(f"{name}={a!r} must be [xmin, xmax, ymin, ymax] with xmin < xmax and ymin < ymax")
 
@@ -326,5 +527,6 @@ def _check_pairs(name: str, value, kind) -> None:
         if not hasattr(v, "__len__") or isinstance(v, str) or len(v) != 2:
             raise ConfigError(f"{name}[{i}]={v!r} must be a pair [a, b]")
         for x in v:
-            if isinstance(x, bool) or not isinstance(x, (int, float)) or (kind is int and float(x) != int(x)):
-                raise ConfigError(f"{name}[{i}]={list(v)!r} must hold two {'integers' if kind is int else 'numbers'}")
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or x != x or x in (float("inf"), float("-inf")) \
+                    or (kind is int and float(x) != int(x)):
+                raise ConfigError(f"{name}[{i}]={list(v)!r} must hold two finite {'integers' if kind is int else 'numbers'}")

@@ -16,14 +16,36 @@ def check_choice(field: str, value, allowed) -> None:
         raise ConfigError(f"{field}={value!r} is not allowed; choose one of {allowed}")
 
 
-def check_positive(field: str, value, *, strict: bool = True) -> None:
-    """Raise :class:`ConfigError` unless ``value`` > 0 (or >= 0 when ``strict`` is False)."""
+def check_positive(field: str, value, *, strict: bool = True, finite: bool = True) -> None:
+    """Raise :class:`ConfigError` unless ``value`` > 0 (or >= 0 when ``strict`` is False) and,
+    unless ``finite`` is False, finite (``inf`` would pass a range check that ``nan`` fails)."""
+    if isinstance(value, bool):
+        raise ConfigError(f"{field}={value!r} must be a number, not a boolean")
     try:
         v = float(value)
     except (TypeError, ValueError):
         raise ConfigError(f"{field}={value!r} must be a number") from None
+    bound = "> 0" if strict else ">= 0"
     if v != v or (v <= 0 if strict else v < 0):
-        raise ConfigError(f"{field}={value!r} must be {'> 0' if strict else '>= 0'}")
+        raise ConfigError(f"{field}={value!r} must be {bound}")
+    if finite and v == float("inf"):
+        raise ConfigError(f"{field}={value!r} must be finite (and {bound})")
+
+
+def check_finite(field: str, value) -> None:
+    """Raise :class:`ConfigError` unless ``value`` is a finite number (or a nested list of them)."""
+    if isinstance(value, (list, tuple)) or (hasattr(value, "__iter__") and not isinstance(value, str)):
+        for k, v in enumerate(value):
+            check_finite(f"{field}[{k}]", v)
+        return
+    if isinstance(value, bool):
+        raise ConfigError(f"{field}={value!r} must be a number, not a boolean")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{field}={value!r} must be a number") from None
+    if v != v or v in (float("inf"), float("-inf")):
+        raise ConfigError(f"{field}={value!r} must be a finite number")
 
 
 def as_list(field: str, value, *, none_as_empty: bool = False) -> list:

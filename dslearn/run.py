@@ -1,50 +1,77 @@
 """``dslearn-run``: the Hydra app. One run = one task configuration -> ``results.csv``.
 
 Every run writes, in its output directory: ``config.yaml`` (resolved config), ``meta.json``
-(package version, git commit, library versions, seed, overrides, wall time, and the
-completeness marker: the row count and SHA-256 of ``results.csv``), then — last, atomically —
-``results.csv``, and finally ``status.json`` (``done | skipped | failed``, read by the sweep
-summary). An interrupted run leaves no ``results.csv`` (or one whose hash does not match).
+(package version, git commit, library versions, seed, overrides, wall time, jitter counts, and
+the completeness marker: the row count and SHA-256 of ``results.csv``), then — last, atomically —
+``results.csv``, and finally ``status.json`` (``done | skipped | failed | interrupted``, read by
+the sweep summary). An interrupted or failed run leaves no ``results.csv`` (or one whose hash
+does not match). While a run works in a folder it holds the folder's lock (``.dslearn.lock``,
+with its pid): a second run into the same folder is refused; a dead owner's lock is taken over.
 
 Resume: ``dslearn-run -m ... hydra.sweep.dir=DIR resume=true`` (or ``hydra.run.dir=DIR
 resume=true`` for one run) skips every job whose directory already holds a complete result
 (:func:`dslearn.io.check_complete`) and re-runs missing or broken ones. The default sweep dir
 contains a timestamp, so resuming needs the same fixed ``hydra.sweep.dir`` both times.
 
-Exit codes: 0 ok; 2 configuration error (one line on stderr, before any work); 1 other failure
-(in a sweep: after every job has run and the table of the finished ones is gathered).
+Before Hydra starts anything, :func:`precheck` composes and validates the configuration of every
+job the command line asks for (each combination of a sweep, including an experiment's
+``hydra.sweeper.params``), and checks the output folder and the launcher plugin.
+
+Exit codes: 0 ok; 2 bad input (configuration, data file, busy run folder, too big for memory:
+one line on stderr, ``dslearn-run: <what>: <message>``); 130 interrupted (Ctrl-C); 1 other
+failure (in a sweep: after every job has run and the table of the finished ones is gathered).
 """
 
 from __future__ import annotations
 
+import copy
 import datetime as _dt
 import importlib
 import json
 import logging
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
-import hydra
-import pandas as pd
-from omegaconf import DictConfig, OmegaConf
+# known harmless third-party warnings (set before gpytorch is imported anywhere):
+# gpytorch 1.11+ decorates with torch.jit.script, which torch >= 2.5 marks deprecated
+warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.* is deprecated", category=DeprecationWarning)
+warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.* is deprecated", category=FutureWarning)
 
-from . import __version__
-from .errors import ConfigError
-from .io import META_FILE, RESULTS_FILE, atomic_write_text, check_complete, results_text, sha256_text
+import hydra  # noqa: E402
+import pandas as pd  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+
+from . import __version__  # noqa: E402
+from .errors import ConfigError, DataFormatError  # noqa: E402
+from .io import (  # noqa: E402
+    META_FILE,
+    RESULTS_FILE,
+    RunDirBusy,
+    RunLock,
+    atomic_write_text,
+    check_complete,
+    results_text,
+    sha256_text,
+)
 
 log = logging.getLogger("dslearn.run")
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 STATUS_FILE = "status.json"
+PROG = "dslearn-run"
 
 
 def resolve_entry(entry: str):
-    """``"pkg.module:function"`` -> the function."""
-    if not isinstance(entry, str) or ":" not in entry:
-        raise ConfigError(f"task.entry={entry!r} must look like 'package.module:function'")
+    """A registered study entry (``"pkg.module:function"``, one of
+    :data:`dslearn.config_schema.TASK_ENTRIES`) -> the function."""
+    from .config_schema import check_entry
+
+    check_entry(entry)
     mod, fn = entry.split(":", 1)
     try:
         return getattr(importlib.import_module(mod), fn)
@@ -98,6 +125,81 @@ def _hydra_job() -> dict:
         return {}
 
 
+# --------------------------------------------------------------------------------------------
+# numerical warnings: counted into meta.json, one summary line per run
+
+
+_JITTER_RE = re.compile(r"added jitter of ([0-9.eE+-]+)")
+
+
+class WarningLedger:
+    """Collects the warnings raised while a task runs.
+
+    Numerical-jitter warnings (GPyTorch's ``NumericalWarning`` "added jitter of ..." and the
+    online GP's "diagonal clamped") are counted, not printed: with the project's own jitter
+    counter (:data:`dslearn.types.JITTER`) they make ``jitter_events`` / ``jitter_max`` in
+    ``meta.json`` and one summary line. Every other warning is shown once per distinct message
+    after the task (with its count when it repeated)."""
+
+    def __init__(self) -> None:
+        self.jitter_warnings = 0
+        self.jitter_max = 0.0
+        self.other: dict[tuple, list] = {}
+        self._cm = None
+
+    @staticmethod
+    def _is_jitter(w) -> bool:
+        name = type(w.message).__name__ if isinstance(w.message, Warning) else w.category.__name__
+        text = str(w.message)
+        return name == "NumericalWarning" or "added jitter" in text or "diagonal clamped" in text
+
+    def __enter__(self) -> "WarningLedger":
+        from .types import JITTER
+
+        self._j = JITTER
+        self._j0, self._jmax0 = JITTER.count, JITTER.max_jitter
+        JITTER.max_jitter = 0.0
+        self._cm = warnings.catch_warnings(record=True)
+        self._log = self._cm.__enter__()
+        warnings.simplefilter("always")
+        warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.* is deprecated")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._cm.__exit__(*exc)
+        self.events = self._j.count - self._j0
+        self.max = self._j.max_jitter
+        self._j.max_jitter = max(self._jmax0, self._j.max_jitter)
+        for w in self._log:
+            if self._is_jitter(w):
+                m = _JITTER_RE.search(str(w.message))
+                if m:
+                    try:
+                        self.jitter_max = max(self.jitter_max, float(m.group(1)))
+                    except ValueError:
+                        pass
+                if "diagonal clamped" not in str(w.message):  # those are already in JITTER
+                    self.jitter_warnings += 1
+                continue
+            key = (w.category, str(w.message))
+            self.other.setdefault(key, [w, 0])[1] += 1
+        for (cat, text), (w, n) in self.other.items():
+            warnings.warn_explicit(text + (f" (x{n})" if n > 1 else ""), cat, w.filename, w.lineno,
+                                   registry={})
+
+    @property
+    def total(self) -> int:
+        return self.events + self.jitter_warnings
+
+    @property
+    def total_max(self) -> float:
+        return max(self.max, self.jitter_max)
+
+
+# --------------------------------------------------------------------------------------------
+# one run
+
+
 def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
     """Validate ``cfg``, run its task and write the result files into ``out_dir``. Returns the results.
 
@@ -114,7 +216,8 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
     fn = resolve_entry(cfg.task.entry)
     started = _dt.datetime.now(_dt.timezone.utc)
     t0 = time.perf_counter()
-    df = fn(cfg)
+    with WarningLedger() as ledger:
+        df = fn(cfg)
     wall = time.perf_counter() - t0
     if not isinstance(df, pd.DataFrame) or not {"metric", "value"} <= set(df.columns):
         raise RuntimeError(f"task {cfg.task.entry} must return a tidy DataFrame with 'metric' and 'value' columns")
@@ -126,6 +229,7 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
             df.insert(0, col, val)
     text = results_text(df)
     atomic_write_text(out_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    jitter = max(ledger.total, int(df.attrs.get("jitter_events", 0)))
     meta = {
         "dslearn_version": __version__,
         "git_commit": _git_commit(),
@@ -138,10 +242,13 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
         "wall_time_s": round(wall, 3),
         "rows": len(df),
         "results_sha256": sha256_text(text),  # completeness marker checked by dslearn.io.check_complete
-        "jitter_events": int(df.attrs.get("jitter_events", 0)),
+        "jitter_events": jitter,
+        "jitter_max": ledger.total_max,
         "argv": sys.argv[1:],
         **_hydra_job(),
     }
+    if jitter:
+        log.info("jitter added to %d near-singular matrices (max %.3g); counted in meta.json", jitter, ledger.total_max)
     atomic_write_text(out_dir / META_FILE, json.dumps(meta, indent=2))
     atomic_write_text(out_dir / RESULTS_FILE, text)  # last: its presence (matching meta) means the run finished
     log.info("wrote %s (%d rows, %.1fs)", out_dir / RESULTS_FILE, len(df), wall)
@@ -161,10 +268,10 @@ def _same_job(out_dir: Path, job: dict) -> bool:
 
     try:
         meta = json.loads((out_dir / META_FILE).read_text())
-    except (OSError, json.JSONDecodeError):
+    except (OSError, ValueError):  # unreadable, not UTF-8, not JSON
         return False
-    if meta.get("overrides") is None or "overrides" not in job:
-        return True
+    if not isinstance(meta, dict) or meta.get("overrides") is None or "overrides" not in job:
+        return isinstance(meta, dict)
     return parse_overrides(meta["overrides"]) == parse_overrides(job["overrides"])
 
 
@@ -180,6 +287,34 @@ def _describe(cfg: DictConfig, job: dict) -> str:
     return ", ".join(parts)
 
 
+def _say(kind: str, msg: str) -> None:
+    """The one line a user sees on stderr."""
+    print(f"{PROG}: {kind}: {' '.join(str(msg).split())}", file=sys.stderr, flush=True)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, turned into an interrupt so that the run records ``interrupted`` (exit 143)."""
+
+
+def _on_sigterm(signum, frame):  # noqa: ARG001
+    raise Terminated()
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    return isinstance(e, MemoryError) or (isinstance(e, RuntimeError) and "can't allocate memory" in str(e))
+
+
+def _progress_context(enabled: bool):
+    """Log lines that do not break the progress bars (tqdm's logging redirect)."""
+    if not enabled:
+        import contextlib
+
+        return contextlib.nullcontext()
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    return logging_redirect_tqdm(loggers=[logging.getLogger()])
+
+
 @hydra.main(version_base=None, config_path=CONF_DIR, config_name="config")
 def _app(cfg: DictConfig) -> dict:
     from hydra.core.hydra_config import HydraConfig
@@ -191,6 +326,26 @@ def _app(cfg: DictConfig) -> dict:
     job = _hydra_job()
     tag = f"job {job['job_num']}" if multirun and job.get("job_num") is not None else "run"
     t0 = time.perf_counter()
+    try:
+        lock = RunLock(out_dir)
+        lock.acquire()
+    except RunDirBusy as e:
+        log.error("%s", e)
+        _say("run folder busy", e)
+        raise SystemExit(2)
+    try:
+        return _run_locked(cfg, out_dir, multirun, job, tag, t0)
+    except KeyboardInterrupt as e:
+        what = "SIGTERM" if isinstance(e, Terminated) else "Ctrl-C"
+        _write_status(out_dir, "interrupted", time.perf_counter() - t0, error=f"interrupted ({what})")
+        log.warning("%s interrupted (%s); no results written", tag, what)
+        _say("interrupted", f"{what}: no results written; {out_dir / STATUS_FILE} says interrupted")
+        raise SystemExit(143 if isinstance(e, Terminated) else 130)
+    finally:
+        lock.release()
+
+
+def _run_locked(cfg: DictConfig, out_dir: Path, multirun: bool, job: dict, tag: str, t0: float) -> dict:
     if cfg.get("progress") is None:
         OmegaConf.set_struct(cfg, False)
         cfg.progress = _progress_default()
@@ -204,17 +359,29 @@ def _app(cfg: DictConfig) -> dict:
             _write_status(out_dir, "skipped", time.perf_counter() - t0)
             return {"status": "skipped", "dir": str(out_dir)}
         log.info("%s: resume: re-running %s (%s)", tag, out_dir, why)
+    (out_dir / STATUS_FILE).unlink(missing_ok=True)  # an old status must not describe this run
     log.info("%s: starting %s -> %s", tag, _describe(cfg, job), out_dir)
     try:
-        df = execute(cfg, out_dir)
-    except ConfigError as e:
-        log.error("configuration error: %s", e)
-        print(f"dslearn-run: configuration error: {e}", file=sys.stderr)
-        _write_status(out_dir, "failed", time.perf_counter() - t0, error=f"ConfigError: {e}", config_error=True)
+        with _progress_context(bool(cfg.get("progress"))):
+            df = execute(cfg, out_dir)
+    except (ConfigError, DataFormatError) as e:
+        kind = "configuration error" if isinstance(e, ConfigError) else "data error"
+        log.error("%s: %s", kind, e)
+        _say(kind, e)
+        _write_status(out_dir, "failed", time.perf_counter() - t0, error=f"{type(e).__name__}: {e}", config_error=True)
         if multirun:  # the sweep goes on; the sweep summary counts it and the exit code is 2
             return {"status": "failed", "dir": str(out_dir), "config_error": True}
         raise SystemExit(2)
     except Exception as e:
+        if _out_of_memory(e):
+            msg = (f"out of memory ({type(e).__name__}: {' '.join(str(e).split())[:200]}); make the run smaller "
+                   "(episodes, horizon, agents, nodes) or run it on a machine with more memory")
+            log.error("%s", msg)
+            _say("resource error", msg)
+            _write_status(out_dir, "failed", time.perf_counter() - t0, error=msg, config_error=True)
+            if multirun:
+                return {"status": "failed", "dir": str(out_dir), "config_error": True}
+            raise SystemExit(2)
         log.exception("%s failed: %s", tag, e)
         _write_status(out_dir, "failed", time.perf_counter() - t0, error=f"{type(e).__name__}: {e}")
         if multirun:  # keep the other jobs; the sweep ends with exit code 1 after gathering
@@ -238,55 +405,540 @@ def _app(cfg: DictConfig) -> dict:
 
 
 # --------------------------------------------------------------------------------------------
-# start-up check: compose the command line's configuration once, before Hydra starts any job
+# start-up check: compose the command line's configuration(s) before Hydra starts any job
 
 
-_NO_CHECK_FLAGS = {"--help", "-h", "--hydra-help", "--version", "--cfg", "-c", "--info", "-i",
+_NO_CHECK_FLAGS = {"--hydra-help", "--cfg", "-c", "--info", "-i",
                    "--shell-completion", "-sc", "--resolve", "--package", "-p", "--config-name", "-cn",
                    "--config-path", "-cp", "--config-dir", "-cd", "--experimental-rerun"}
+_MULTIRUN_FLAGS = {"-m", "--multirun"}
+#: Hydra launcher option -> (plugin module, dslearn extra that installs it)
+LAUNCHERS = {
+    "basic": (None, None),
+    "joblib": ("hydra_plugins.hydra_joblib_launcher", "joblib"),
+    "ray": ("hydra_plugins.hydra_ray_launcher", "ray"),
+    "submitit_local": ("hydra_plugins.hydra_submitit_launcher", "slurm"),
+    "submitit_slurm": ("hydra_plugins.hydra_submitit_launcher", "slurm"),
+}
+
+
+def _plugin_installed(module: str) -> bool:
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def _check_launcher(option: str) -> None:
+    if option not in LAUNCHERS:
+        raise ConfigError(f"hydra/launcher={option!r} is not a known launcher; choose one of {sorted(LAUNCHERS)}")
+    module, extra = LAUNCHERS[option]
+    if module is not None and not _plugin_installed(module):
+        raise ConfigError(
+            f"hydra/launcher={option} needs the Hydra plugin {module.split('.')[-1]}, which is not installed; "
+            f'install it with: pip install "dslearn[{extra}]"'
+        )
+
+
+def _check_output_dir(key: str, value: str) -> None:
+    """``hydra.run.dir`` / ``hydra.sweep.dir``: a folder that can be created (not a file)."""
+    if "${" in value:
+        return
+    p = Path(value).expanduser()
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"{key}={value} is an existing file, not a folder; choose a folder for the outputs")
+    parent = p
+    while not parent.exists():
+        if parent.parent == parent:
+            break
+        parent = parent.parent
+    if parent.exists() and not parent.is_dir():
+        raise ConfigError(f"{key}={value}: {parent} is a file, so the folder cannot be created")
+    if parent.exists() and not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{key}={value}: {parent} is not writable")
+
+
+def _group_options(group: str) -> list[str]:
+    d = Path(CONF_DIR) / group
+    return sorted(p.stem for p in d.glob("*.yaml")) if d.is_dir() else []
+
+
+def _is_group(key: str) -> bool:
+    return (Path(CONF_DIR) / key).is_dir() or key == "schema"
+
+
+def _check_group_option(group: str, option) -> None:
+    opts = _group_options(group)
+    if not opts or not isinstance(option, str):
+        return
+    if str(option) not in opts:
+        raise ConfigError(f"{group}={option!r} is not an option of the config group '{group}'; choose one of {opts}")
+
+
+def _hydra_message(e: Exception) -> str:
+    msg = " ".join(str(e).split()).split(" Config search path:")[0]
+    cause = e.__cause__
+    if cause is not None and str(cause).strip() and str(cause).split("\n")[0] not in msg:
+        msg += ": " + str(cause).split("\n")[0]
+    return msg or type(e).__name__
+
+
+class _Composer:
+    """Compose the configuration of many jobs cheaply (a Hydra compose costs ~0.3-0.6 s).
+
+    The group choices every job shares are composed once (the base). A group choice that
+    varies is composed once per option on top of the base; where it changes only its own
+    group's node (checked against the base), that node is swapped into a copy of the base for
+    each job; otherwise the job's group choices are composed in full (once per distinct set).
+    Value overrides (``key=value``) are then applied with Hydra's own routine, so every job's
+    configuration is exactly what Hydra composes for it."""
+
+    def __init__(self, compose, base: tuple[str, ...]):
+        self._compose = compose
+        self.base = base
+        self._full: dict[tuple, DictConfig] = {}
+        self._single: dict[str, tuple | None] = {}
+        self._jobs: dict[tuple, DictConfig] = {}
+        self.composes = 0
+
+    def full(self, groups: tuple[str, ...]) -> DictConfig:
+        if groups not in self._full:
+            self.composes += 1
+            self._full[groups] = self._compose(list(groups))
+        return self._full[groups]
+
+    def config(self, varying: list, all_lines: list[str]) -> DictConfig:
+        """The (cached, shared: do not modify) config of a job's group choices."""
+        key = tuple(all_lines)
+        if key in self._jobs:
+            return self._jobs[key]
+        base = self.full(self.base)
+        swaps = []
+        for line, o in varying:
+            node = self._swap(base, line, o)
+            if node is None:
+                self._jobs[key] = self.full(key)
+                return self._jobs[key]
+            swaps.append(node)
+        if not swaps:
+            cfg = base
+        else:
+            # copy the base without the nodes about to be replaced, then put the options' nodes in
+            cfg = _copy_without(base, {k for k, _ in swaps})
+            with _open(cfg):
+                for k, value in swaps:
+                    if value is not None:
+                        cfg[k] = copy.deepcopy(value)
+        self._jobs[key] = cfg
+        return cfg
+
+    def _swap(self, base, line, o):
+        if line not in self._single:
+            key = o.key_or_group
+            res = None
+            if o.package is None and "/" not in key and not o.is_delete():
+                one = self.full(self.base + (line,))
+                keys = (set(base.keys()) | set(one.keys())) - {key}
+                if all(key_equal(base, one, kk) for kk in keys):
+                    res = (key, one._get_node(key) if key in one else None)
+            self._single[line] = res
+        return self._single[line]
+
+
+def _scalar_changes(values: list, cfg: DictConfig) -> list | None:
+    """For overrides that only change existing scalar leaves: ``(parent, leaf, old raw value)``
+    per override, to undo them; ``None`` when any override adds, deletes or sets a container."""
+    undo = []
+    for o in values:
+        if o.is_delete() or o.is_add() or o.is_force_add() or o.package is not None:
+            return None
+        v = o.value()
+        if isinstance(v, (dict, list)) or o.is_sweep_override():
+            return None
+        key = o.key_or_group
+        parent_key, _, leaf = key.rpartition(".")
+        parent = OmegaConf.select(cfg, parent_key, throw_on_missing=False) if parent_key else cfg
+        if not isinstance(parent, DictConfig) or leaf not in parent:
+            return None
+        node = parent._get_node(leaf)
+        if node is None or OmegaConf.is_config(node) or not type(node).__name__ == "AnyNode":
+            return None
+        undo.append((parent, leaf, node._value()))
+    return undo
+
+
+def _copy_without(cfg: DictConfig, skip: set) -> DictConfig:
+    """A deep copy of ``cfg`` without its top-level keys in ``skip`` (``cfg`` is unchanged)."""
+    content = cfg.__dict__.get("_content")
+    if not skip or not isinstance(content, dict):
+        out = copy.deepcopy(cfg)
+        with _open(out):
+            for k in skip:
+                out.pop(k, None)
+        return out
+    orig = dict(content)
+    for k in skip:
+        content.pop(k, None)
+    try:
+        return copy.deepcopy(cfg)
+    finally:
+        content.clear()
+        content.update(orig)
+
+
+class _open:
+    def __init__(self, cfg):
+        self.cfg = cfg
+
+    def __enter__(self):
+        self.flag = OmegaConf.is_struct(self.cfg)
+        OmegaConf.set_struct(self.cfg, False)
+
+    def __exit__(self, *exc):
+        OmegaConf.set_struct(self.cfg, self.flag)
+
+
+def key_equal(a: DictConfig, b: DictConfig, key: str) -> bool:
+    if (key in a) != (key in b):
+        return False
+    if key not in a:
+        return True
+    va, vb = a._get_node(key), b._get_node(key)
+    try:
+        ca = OmegaConf.to_container(va, resolve=False) if OmegaConf.is_config(va) else va._value()
+        cb = OmegaConf.to_container(vb, resolve=False) if OmegaConf.is_config(vb) else vb._value()
+    except Exception:  # noqa: BLE001
+        return False
+    return ca == cb
+
+
+_PARSED: dict[str, object] = {}
+
+
+def parse_override(line: str):
+    """One command-line override parsed by Hydra's parser (memoised: parsing a long list value
+    costs seconds, and a line is parsed several times on the way)."""
+    if line not in _PARSED:
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+
+        if len(_PARSED) > 10000:
+            _PARSED.clear()
+        _PARSED[line] = OverridesParser.create().parse_overrides([line])[0]
+    return _PARSED[line]
+
+
+def _parse_all(lines: list[str]) -> list:
+    return [parse_override(x) for x in lines]
+
+
+def _is_group_override(o) -> bool:
+    return o.package is not None or _is_group(o.key_or_group)
+
+
+def sweep_combinations(argv: list[str]) -> tuple[list[list[str]], bool, DictConfig | None]:
+    """The job override lists a command line runs, whether it is a multirun, and the master
+    config it was decided on (group choices and Hydra's own overrides, with ``hydra``). A
+    multirun includes an experiment's ``hydra.sweeper.params`` as Hydra's basic sweeper does
+    (command-line values of the same key win). Needs an initialised Hydra
+    (``initialize_config_dir``)."""
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.types import RunMode
+
+    overrides = [a for a in argv if not a.startswith("-")]
+    parsed = _parse_all(overrides)
+    user = [o for o in parsed if not o.key_or_group.startswith("hydra")]
+    flag = any(a in _MULTIRUN_FLAGS for a in argv)
+    sweeps = [o.input_line for o in user if o.is_sweep_override()]
+    # the master config only tells the mode and the sweeper's params: compose it from the group
+    # choices and Hydra's own overrides (a bad value override is reported per job, with context)
+    head = [o.input_line for o in parsed if o.key_or_group.startswith("hydra") or _is_group_override(o)]
+    cl = GlobalHydra.instance().config_loader()
+    master = cl.load_configuration("config", head, run_mode=RunMode.MULTIRUN, validate_sweep_overrides=False)
+    multirun = flag or master.hydra.get("mode") == RunMode.MULTIRUN
+    if not multirun:
+        if sweeps:
+            raise ConfigError(
+                f"{sweeps[0]} is a sweep (one job per value); add -m (--multirun) to run them, "
+                f"or write {sweeps[0].split('=', 1)[0]}=[a,b] for a list value"
+            )
+        return [[o.input_line for o in user]], False, master
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+
+    params = [f"{k}={v}" for k, v in (master.hydra.sweeper.get("params") or {}).items()]
+    allp = [o for o in _parse_all(params) if not o.key_or_group.startswith("hydra")] + user
+    combos = BasicSweeper.split_arguments(allp, None)[0] if allp else [[]]
+    return combos, True, master
+
+
+def check_jobs(combos: list[list[str]], compose, visit=None) -> tuple[int, int]:
+    """Validate every job's configuration; ConfigError naming the job on the first bad one.
+    ``compose(overrides)`` composes one configuration (Hydra's ``compose``); ``visit(cfg)``
+    (default :func:`~dslearn.config_schema.validate_config`) is called with each job's
+    configuration, which is only valid during the call. Returns ``(jobs checked, full
+    compositions made)``."""
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+
+    from .config_schema import validate_config
+
+    visit = visit or validate_config
+    many = len(combos) > 1
+    split = []
+    for i, combo in enumerate(combos):
+        where = f" (sweep job {i}: {' '.join(combo)})" if many else ""
+        try:
+            parsed = _parse_all(list(combo))
+        except Exception as e:  # noqa: BLE001
+            raise ConfigError(f"{_friendly(e)}{where}") from None
+        groups, values = [], []
+        for line, o in zip(combo, parsed):
+            if _is_group_override(o):
+                if not o.is_delete():
+                    try:
+                        _check_group_option(o.key_or_group, o.value())
+                    except ConfigError as e:
+                        raise ConfigError(f"{e}{where}") from None
+                groups.append((line, o))
+            else:
+                values.append(o)
+        split.append((groups, values, where))
+    constant = [g for g in split[0][0] if all(g[0] in {x[0] for x in s[0]} for s in split)] if split else []
+    composer = _Composer(compose, tuple(g[0] for g in constant))
+    const_lines = {g[0] for g in constant}
+    for groups, values, where in split:
+        cfg = None
+        try:
+            cfg = composer.config([g for g in groups if g[0] not in const_lines], [g[0] for g in groups])
+            undo = _scalar_changes(values, cfg)
+            if undo is None:  # adds, deletes, containers: on a copy
+                cfg = copy.deepcopy(cfg)
+                ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
+                visit(cfg)
+            else:  # plain key=scalar changes: in place, undone afterwards (no copy: ~10 ms a job)
+                try:
+                    ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
+                    visit(cfg)
+                finally:
+                    for parent, leaf, old in reversed(undo):
+                        with _open(parent):
+                            parent[leaf] = old
+        except ConfigError as e:
+            raise ConfigError(f"{e}{where}") from None
+        except Exception as e:  # noqa: BLE001 - Hydra/OmegaConf composition errors
+            raise ConfigError(f"{_friendly(e, cfg)}{where}") from None
+    return len(combos), composer.composes
+
+
+def _friendly(e: Exception, cfg: DictConfig | None = None) -> str:
+    msg = _hydra_message(e)
+    m = re.search(r"Could not override '([^']+)'", msg)
+    if m:
+        key = m.group(1)
+        known = ""
+        parent = key.rsplit(".", 1)[0] if "." in key else None
+        if cfg is not None:
+            node = OmegaConf.select(cfg, parent, default=None) if parent else cfg
+            if isinstance(node, DictConfig):
+                known = f" (known keys{' of ' + parent if parent else ''}: {sorted(str(k) for k in node.keys())})"
+        return f"{key}: no such key in the configuration{known}; to add a new key write +{key}=..."
+    return msg
 
 
 def precheck(argv: list[str]) -> str | None:
     """Compose and validate the configuration the command line asks for; the error line or ``None``.
 
-    Sweep overrides (``a=1,2``, ``range(...)``) are expanded and every combination is checked,
-    so a bad value in a sweep fails before its first job runs. Options that Hydra handles itself
-    (``--help``, ``--cfg``, ...) skip the check.
+    Sweep overrides (``a=1,2``, ``range(...)``) and an experiment's sweep parameters are expanded
+    and every combination is checked, so a bad value anywhere in a sweep fails before its first
+    job runs. ``hydra.run.dir`` / ``hydra.sweep.dir`` must name a folder (or a place one can be
+    made) and the chosen launcher's plugin must be installed. Options that Hydra handles itself
+    (``--cfg``, ``--info``, ...) skip the check.
     """
     if any(a.split("=")[0] in _NO_CHECK_FLAGS for a in argv):
         return None
     overrides = [a for a in argv if not a.startswith("-")]
     try:
         from hydra import compose, initialize_config_dir
-        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-        from hydra.core.override_parser.overrides_parser import OverridesParser
 
-        parsed = OverridesParser.create().parse_overrides(overrides)
-        user = [o for o in parsed if not o.key_or_group.startswith("hydra")]
-        combos = BasicSweeper.split_arguments(user, None)[0] if user else [[]]
-        if len(combos) > 16:  # a huge grid: check the first and last jobs only
-            combos = [combos[0], combos[-1]]
-        from .config_schema import validate_config
-
+        parsed = []
+        for line in overrides:
+            try:
+                parsed.append(parse_override(line))
+            except Exception as e:  # noqa: BLE001
+                msg = _hydra_message(e).split(" See https://hydra.cc")[0]
+                return (f"{line}: not a valid override ({msg}); write key=value, group=option, +key=value "
+                        "to add, or key=a,b with -m to sweep")
+        for o in parsed:
+            if o.key_or_group in ("hydra.run.dir", "hydra.sweep.dir"):
+                _check_output_dir(o.key_or_group, str(o.value()))
+            if o.key_or_group == "hydra/launcher":
+                _check_launcher(str(o.value()))
+            elif o.key_or_group.startswith("hydra/"):
+                continue
+            elif _is_group(o.key_or_group) and not o.is_sweep_override() and not o.is_delete():
+                _check_group_option(o.key_or_group, o.value())
         with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-            for combo in combos:
-                cfg = compose("config", overrides=list(combo))
-                validate_config(cfg)
+            combos, multirun, master = sweep_combinations(argv)
+            seeded = {}
+            if not multirun:  # one job: its group choices are the master's; reuse that composition
+                groups = tuple(o.input_line for o in _parse_all(combos[0]) if _is_group_override(o))
+                seeded[groups] = master
+
+            def _compose(ov):
+                key = tuple(ov)
+                return seeded.pop(key) if key in seeded else compose("config", overrides=list(ov))
+
+            check_jobs(combos, _compose)
     except ConfigError as e:
         return str(e)
     except Exception as e:  # Hydra/OmegaConf composition errors: unknown key, group option, type
-        msg = " ".join(str(e).split()).split(" Config search path:")[0]
-        return msg or type(e).__name__
+        return _friendly(e)
     return None
 
 
-def main() -> None:
-    argv = sys.argv[1:]
-    err = precheck(argv)
-    if err is not None:
-        print(f"dslearn-run: configuration error: {err}", file=sys.stderr)
-        raise SystemExit(2)
-    _app()
+# --------------------------------------------------------------------------------------------
+# --help and --version
+
+
+def _first_comment(path: Path) -> str:
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError):
+        return ""
+    for ln in lines:  # the first whole-line comment (not a package directive)
+        s = ln.strip()
+        if s.startswith("#"):
+            text = s.lstrip("#").strip()
+            if text and not text.startswith("@package"):
+                return text
+    # no leading comment: the option's own keys, compactly
+    try:
+        c = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+    except Exception:  # noqa: BLE001
+        return ""
+    if not isinstance(c, dict):
+        return ""
+    items = [f"{k}={v}" for k, v in c.items() if k != "defaults" and not isinstance(v, (dict, list))]
+    return ", ".join(items)
+
+
+def _defaults() -> dict[str, str]:
+    try:
+        d = OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "config.yaml").get("defaults", []))
+    except Exception:  # noqa: BLE001
+        return {}
+    out = {}
+    for item in d or []:
+        if isinstance(item, dict):
+            for k, v in item.items():
+                out[str(k)] = str(v)
+    return out
+
+
+def help_text(width: int = 100) -> str:
+    """``dslearn-run --help``: config groups and experiments, one line each, sweeps, outputs."""
+    conf = Path(CONF_DIR)
+    defaults = _defaults()
+
+    def line(name: str, text: str, indent: int = 4, col: int = 22) -> str:
+        head = " " * indent + name
+        head = head + " " * max(1, col - len(head))
+        room = max(20, width - len(head))
+        return head + (text if len(text) <= room else text[: room - 3] + "...")
+
+    out = [
+        f"{PROG} {__version__}: run one study configuration, or a sweep of them; every run writes results.csv.",
+        "",
+        "usage:",
+        f"  {PROG} experiment=<name> [key=value ...]      a paper's study (list below)",
+        f"  {PROG} [group=option ...] [key=value ...]     one run of the default study (Yu et al., synthetic)",
+        f"  {PROG} -m key=a,b group=x,y ...              a sweep: one job per combination",
+        "",
+        "experiments (experiment=<name>):",
+    ]
+    for p in sorted((conf / "experiment").glob("*.yaml")):
+        out.append(line(p.stem, _first_comment(p), 2))
+    out += ["", "config groups (group=option; * = default):"]
+    for g in sorted(d.name for d in conf.iterdir() if d.is_dir() and d.name != "experiment"):
+        out.append(f"  {g}:")
+        for p in sorted((conf / g).glob("*.yaml")):
+            mark = "*" if defaults.get(g) == p.stem else " "
+            out.append(line(f"{mark} {p.stem}", _first_comment(p), 4))
+    out += ["", "top-level keys (key=value):"]
+    try:
+        for ln in (conf / "config.yaml").read_text(encoding="utf-8").splitlines():
+            m = re.match(r"^([a-z_]+):\s*([^#]*?)\s*(?:#\s*(.*))?$", ln)
+            if m and m.group(1) not in ("defaults", "hydra"):
+                out.append(line(f"{m.group(1)}={m.group(2)}", m.group(3) or "", 2))
+    except OSError:
+        pass
+    out.append(line("+max_memory_gb=<GB>", "memory limit of the start-up resource guard (default: 75% of this machine)", 2))
+    out += [
+        "",
+        "sweeps:",
+        f"  {PROG} -m model=lin,gp consensus=individual,hybrid seed=0,1,2 hydra.sweep.dir=multirun/mine",
+        "  every combination is checked before the first job starts; resume an interrupted sweep with the",
+        "  same command plus resume=true; hydra/launcher=joblib runs jobs in parallel (pip install \"dslearn[joblib]\").",
+        "",
+        "outputs:",
+        "  one run: outputs/<study>/<date_time>/ (or hydra.run.dir=DIR): results.csv (tidy: one row per",
+        "  episode x node x metric), meta.json, config.yaml, status.json, run.log.",
+        "  a sweep: multirun/<study>/<date_time>/<job>/ (or hydra.sweep.dir=DIR), plus sweep_results.csv.",
+        "  then: dslearn-report DIR  -> report.md (open it first), figure.png, summary.csv.",
+        "",
+        f"more: {PROG} --cfg job [overrides] prints the composed config; --hydra-help lists Hydra's own options;",
+        f"      {PROG} --version prints dslearn's version. Exit codes: 0 ok, 2 bad input, 130 Ctrl-C, 1 other.",
+    ]
+    return "\n".join(out)
+
+
+def version_text() -> str:
+    return f"{PROG} (dslearn) {__version__}"
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The ``dslearn-run`` console script (``argv`` defaults to ``sys.argv[1:]``)."""
+    if argv is None:
+        argv = sys.argv[1:]
+    argv = list(argv)
+    try:
+        if any(a in ("--help", "-h") for a in argv):
+            try:
+                print(help_text())
+            except BrokenPipeError:  # e.g. | head
+                sys.stdout = open(os.devnull, "w")
+            return
+        if "--version" in argv:
+            print(version_text())
+            return
+        err = precheck(argv)
+        if err is not None:
+            _say("configuration error", err)
+            raise SystemExit(2)
+        old = sys.argv
+        sys.argv = [old[0] if old else PROG, *argv]
+        old_term = None
+        try:
+            import signal
+            import threading
+
+            if threading.current_thread() is threading.main_thread():
+                old_term = signal.signal(signal.SIGTERM, _on_sigterm)
+        except (ValueError, OSError, AttributeError):
+            old_term = None
+        try:
+            _app()
+        finally:
+            sys.argv = old
+            if old_term is not None:
+                signal.signal(signal.SIGTERM, old_term)
+    except KeyboardInterrupt as e:
+        what = "SIGTERM" if isinstance(e, Terminated) else "Ctrl-C"
+        _say("interrupted", f"{what} before the run started; nothing was written")
+        raise SystemExit(143 if isinstance(e, Terminated) else 130) from None
 
 
 if __name__ == "__main__":

@@ -1,9 +1,19 @@
-"""Bad input everywhere: each case fails before any work with a message naming the field / file."""
+"""Bad input everywhere: every case is refused with ONE stderr line naming the problem, exit code 2
+(130 for Ctrl-C), no traceback, and nothing left that looks like a result.
 
+Most cases run the real command-line entry point in-process (``dslearn.run.main(argv)`` /
+``dslearn.report.main(argv)``: the same code path as the console scripts, without the ~3 s
+interpreter start); a representative few run the console script in a subprocess.
+"""
+
+import contextlib
+import io
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -14,11 +24,62 @@ from dslearn.errors import ConfigError, DataFormatError
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# (overrides, expected message fragment) -- checked by the schema pass (validate_config)
+
+# ------------------------------------------------------------------------------------------
+# harness
+
+
+def cli(argv, main=None):
+    """Run ``dslearn-run`` (or another console main) in-process: ``(exit code, stdout, stderr)``."""
+    if main is None:
+        from dslearn.run import main
+    out, err = io.StringIO(), io.StringIO()
+    code = 0
+    old = os.environ.get("CI")
+    os.environ["CI"] = "1"  # no progress bars
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                main(list(argv))
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else 1
+    finally:
+        if old is None:
+            os.environ.pop("CI", None)
+        else:
+            os.environ["CI"] = old
+    return code, out.getvalue(), err.getvalue()
+
+
+def assert_refused(code, out, err, fragment, where=None, exit_code=2, prog="dslearn-run"):
+    """Exit code, one stderr line naming the problem, no traceback, no result left in ``where``."""
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == exit_code, (code, err[-2000:], out[-2000:])
+    assert len(lines) == 1, err
+    assert lines[0].startswith(f"{prog}: "), lines[0]
+    assert fragment in lines[0], (fragment, lines[0])
+    assert "Traceback" not in err and "Traceback" not in out
+    if where is not None:
+        where = Path(where)
+        assert not list(where.rglob("results.csv")) if where.exists() else True
+        for st in where.rglob("status.json") if where.exists() else []:
+            assert json.loads(st.read_text())["status"] in ("failed", "interrupted"), st.read_text()
+
+
+def run_refused(argv, fragment, tmp_path, exit_code=2):
+    run = tmp_path / "run"
+    code, out, err = cli([*argv, f"hydra.run.dir={run}"] if not any(a.startswith("hydra.") for a in argv) else argv)
+    assert_refused(code, out, err, fragment, run if run.exists() else tmp_path, exit_code)
+    return err
+
+
+# ------------------------------------------------------------------------------------------
+# configuration values: the start-up check (precheck) refuses them before Hydra starts a job
+
 SCHEMA_CASES = [
     (["seed=abc"], "seed: Value 'abc' of type 'str' could not be converted to Integer"),
     (["seed=-1"], "seed=-1 must be an integer >= 0"),
-    (["threads=0"], "threads=0 must be >= 1"),
+    (["threads=0"], "threads=0 must be in 1.."),
     (["dtype=float16"], "dtype='float16' is not allowed"),
     (["device=tpu"], "device='tpu' is not allowed"),
     (["progress=maybe"], "progress: Value 'maybe' is not a valid bool"),
@@ -33,15 +94,15 @@ SCHEMA_CASES = [
     (["scenario.dt=0"], "scenario.dt=0.0 must be > 0"),
     (["scenario.horizon=0.25"], "scenario.horizon=0.25 must be >= 2 * scenario.dt"),
     (["scenario.start_corners=[[1,1]]"], "scenario.start_corners must hold one [x, y] pair per agent (2)"),
-    (["network.positions=[[0,0],[1,x]]"], "network.positions[1]=[1, 'x'] must hold two numbers"),
-    (["network.edges=[[0,1.5]]"], "network.edges[0]=[0, 1.5] must hold two integers"),
+    (["network.positions=[[0,0],[1,x]]"], "network.positions[1]=[1, 'x'] must hold two finite numbers"),
+    (["network.edges=[[0,1.5]]"], "network.edges[0]=[0, 1.5] must hold two finite integers"),
     (["model.noise_std=-1"], "model.noise_std=-1.0 must be > 0"),
     (["model.lengthscale=0"], "model.lengthscale=0.0 must be > 0"),
     (["model.mean=linear"], "model.mean='linear' is not allowed"),
     (["consensus.iterations=-1"], "consensus.iterations=-1 must be an integer >= 0"),
     (["consensus.iterations=two"], "consensus.iterations: Value 'two' of type 'str' could not be converted to Integer"),
     (["consensus.weights=random"], "consensus.weights='random' is not allowed"),
-    (["consensus.omega=-2"], "consensus.omega=-2 must be > 0, 'one' or 'nodes'"),
+    (["consensus.omega=-2"], "consensus.omega=-2 must be > 0 and finite, 'one' or 'nodes'"),
     (["consensus.name=gossip"], "consensus.name='gossip' is not allowed"),
     (["data.test_episodes=0"], "data.test_episodes=0 must be an integer >= 1"),
     (["data.eval_at=[0,99]", "data.train_episodes=10"], "data.eval_at contains [99]"),
@@ -49,29 +110,247 @@ SCHEMA_CASES = [
     (["observation.name=radar"], "observation.name='radar' is not allowed"),
 ]
 
+# inf passes a range check that nan fails; nan/inf positions and velocities; misleading messages
+NONFINITE_CASES = [
+    (["model.lengthscale=inf"], "model.lengthscale=inf must be finite"),
+    (["model.noise_std=inf"], "model.noise_std=inf must be finite"),
+    (["model.outputscale=-inf"], "model.outputscale=-inf must be > 0"),
+    (["filter.prior_pos_std=inf"], "filter.prior_pos_std=inf must be finite"),
+    (["network.meas_std=inf"], "network.meas_std=inf must be finite"),
+    (["network.sensing_range=nan"], "network.sensing_range=nan must be > 0"),
+    (["consensus.omega=inf"], "consensus.omega=inf must be > 0 and finite"),
+    (["scenario.area=[0,inf,0,8]"], "scenario.area[1]=inf must be a finite number"),
+    (["scenario.tau=inf"], "scenario.tau=inf must be finite"),
+    (["scenario.dt=nan"], "scenario.dt=nan must be > 0"),
+    (["network.positions=[[nan,0],[1,1]]"], "network.positions[0]=[nan, 0] must hold two finite numbers"),
+    (["scenario.desired_velocities=[[nan,1],[1,1]]"], "scenario.desired_velocities[0]=[nan, 1] must hold two finite numbers"),
+    (["observation=gp", "observation.lengthscale=-1"], "observation.lengthscale=-1.0 must be > 0"),
+    (["observation=gp", "observation.mean=linear"], "observation.mean='linear' is not allowed"),
+]
 
-@pytest.mark.parametrize("overrides,expected", SCHEMA_CASES, ids=lambda v: str(v)[:40])
-def test_schema_rejects(make_cfg, overrides, expected):
-    cfg = make_cfg(*overrides)
-    with pytest.raises(ConfigError) as e:
-        validate_config(cfg)
-    assert expected in str(e.value)
+# resource guard, study registry, unknown keys/options, command-line syntax
+OTHER_CASES = [
+    (["scenario.horizon=10000000"], "estimated peak memory"),
+    (["data.train_episodes=1000000000"], "data.train_episodes=1000000000"),
+    ([f"scenario.desired_velocities=[{','.join(['[1,-1]'] * 100)}]",
+      f"scenario.start_corners=[{','.join(['[1,5]'] * 100)}]", "+max_memory_gb=8"], "from 100 agents"),
+    (["+max_memory_gb=0.001"], "exceeds the limit of 0.001 GB (max_memory_gb=0.001)"),
+    (["+max_memory_gb=-1"], "max_memory_gb=-1.0 must be > 0"),
+    (["threads=1000000"], "threads=1000000 must be in 1.."),
+    (["task.entry=builtins:len"], "task.entry='builtins:len' is not a registered study entry; choose one of ["),
+    (["task.entry=os:system"], "task.entry='os:system' is not a registered study entry"),
+    (["task.entry=dslearn.studies.yu:report"], "is not a registered study entry"),
+    (["network.colr=3"], "network.colr: no such key in the configuration (known keys of network: ["),
+    (["model=nosuch"], "model='nosuch' is not an option of the config group 'model'; choose one of ['gp'"),
+    (["experiment=nosuch"], "experiment='nosuch' is not an option of the config group 'experiment'"),
+    (["nosuchkey=1"], "nosuchkey: no such key in the configuration"),
+    (["model=[lin"], "model=[lin"),
+    (["model=lin,sfm"], "model=lin,sfm is a sweep (one job per value); add -m (--multirun)"),
+]
+
+
+@pytest.mark.parametrize("overrides,expected", SCHEMA_CASES + NONFINITE_CASES + OTHER_CASES, ids=lambda v: str(v)[:40])
+def test_cli_refuses_bad_values(tmp_path, overrides, expected):
+    run_refused(overrides, expected, tmp_path)
+
+
+def test_memory_estimate_names_the_numbers(make_cfg):
+    from dslearn.config_schema import estimate_core_memory, memory_limit_gb
+
+    est = estimate_core_memory(make_cfg("data.train_episodes=30", "data.test_episodes=20"))
+    # GP: 30 episodes x 12 steps = 360 points -> buffer 384 + 256 = 640 rows; 10 nodes
+    cap, s, n, d = 640, 10, 360, 8
+    assert est["gp"] == pytest.approx(s * (2.0 * cap * cap + 3 * cap * d) * 8 + s * 20 * n * 8 * 2, rel=1e-12)
+    assert est["tracking"] == pytest.approx(5.0 * s * 20 * 13 * d * d * 8, rel=1e-12)
+    lin = estimate_core_memory(make_cfg("model=lin"))
+    assert lin["gp"] == 0.0
+    assert memory_limit_gb(3.5) == (3.5, "max_memory_gb=3.5")
 
 
 def test_good_configs_pass(make_cfg):
     for ov in ([], ["model=lin"], ["model=gp_sgpr"], ["observation=gp"], ["experiment=yu_faults"],
-               ["experiment=liu_table1"], ["experiment=jiang_fg"], ["experiment=braga_tbn"]):
+               ["experiment=liu_table1"], ["experiment=jiang_fg"], ["experiment=braga_tbn"],
+               ["data=paper"], ["+max_memory_gb=40"], ["threads=null"]):
         validate_config(make_cfg(*ov))
+
+
+def test_registry_matches_the_task_configs():
+    """``task.entry`` must be registered; the registry is exactly the task configs' entries."""
+    from omegaconf import OmegaConf
+
+    from dslearn.config_schema import TASK_ENTRIES
+
+    found = {}
+    for p in (ROOT / "conf" / "task").glob("*.yaml"):
+        c = OmegaConf.load(p)
+        found[str(c.name)] = str(c.entry)
+    assert found == TASK_ENTRIES
+
+
+# ------------------------------------------------------------------------------------------
+# sweeps: every combination is checked before the first job
+
+
+def test_sweep_bad_value_in_the_middle(tmp_path):
+    vals = ",".join(str(0.1 + 0.01 * i) for i in range(17)) + ",-1,0.5"
+    code, out, err = cli(["-m", f"network.meas_std={vals}", "model=lin,sfm", f"hydra.sweep.dir={tmp_path / 'sw'}"])
+    assert_refused(code, out, err, "network.meas_std=-1.0 must be > 0 (sweep job 34: network.meas_std=-1 model=lin)")
+    assert not (tmp_path / "sw").exists()  # no job started
+
+
+def test_sweep_bad_group_option_and_experiment_params(tmp_path):
+    code, out, err = cli(["-m", "model=lin,nosuchmodel", f"hydra.sweep.dir={tmp_path / 'a'}"])
+    assert_refused(code, out, err, "model='nosuchmodel' is not an option of the config group 'model'")
+    # an experiment's own sweep (hydra.sweeper.params: 5 models x 3 fusions) is expanded too
+    code, out, err = cli(["experiment=yu_table1", "data.test_episodes=1,0", f"hydra.sweep.dir={tmp_path / 'b'}"])
+    assert_refused(code, out, err, "data.test_episodes=0 must be an integer >= 1 (sweep job 1: model=lin consensus=individual")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_output_dir_and_launcher(tmp_path, monkeypatch):
+    f = tmp_path / "afile"
+    f.write_text("x")
+    for argv, frag in (
+        ([f"hydra.run.dir={f}"], f"hydra.run.dir={f} is an existing file, not a folder"),
+        ([f"hydra.run.dir={f}/sub"], f"hydra.run.dir={f}/sub: {f} is a file"),
+        (["-m", "model=lin", f"hydra.sweep.dir={f}"], f"hydra.sweep.dir={f} is an existing file"),
+        (["-m", "hydra/launcher=nosuch", "model=lin", f"hydra.sweep.dir={tmp_path / 's'}"],
+         "hydra/launcher='nosuch' is not a known launcher; choose one of ['basic', 'joblib'"),
+    ):
+        code, out, err = cli(argv)
+        assert_refused(code, out, err, frag, tmp_path)
+    import dslearn.run as run
+
+    monkeypatch.setattr(run, "_plugin_installed", lambda module: False)  # as without the extra
+    code, out, err = cli(["-m", "hydra/launcher=joblib", "model=lin", f"hydra.sweep.dir={tmp_path / 's'}"])
+    assert_refused(code, out, err, 'hydra/launcher=joblib needs the Hydra plugin hydra_joblib_launcher, which is not '
+                                   'installed; install it with: pip install "dslearn[joblib]"', tmp_path)
+    assert f.read_text() == "x" and not (tmp_path / "s").exists()
+
+
+# ------------------------------------------------------------------------------------------
+# during the run: data files, data root, Ctrl-C, memory, busy run folder
+
+BAD_FILES = {
+    "binary": (b"0\t1\t1.0\x00\x01\x02\n", "crowds_zara01.txt:1: binary file (NUL byte)"),
+    "latin1": ("0\t1\t1.0\t2.0\n10\t1\tcaf\xe9\t2.0\n".encode("latin-1"), "crowds_zara01.txt:2: byte 0xe9 is not UTF-8 text"),
+    "bom": (b"\xef\xbb\xbf0\t1\t1.0\t2.0\n", "crowds_zara01.txt:1: starts with a UTF-8 byte-order mark (BOM)"),
+    "header": (b"frame\tped\tx\ty\n0\t1\t1.0\t2.0\n", "crowds_zara01.txt:1: non-numeric field in 'frame\\tped\\tx\\ty' (a header line?"),
+    "backwards": (b"10\t1\t1.0\t2.0\n0\t1\t1.0\t2.0\n", "crowds_zara01.txt:2: frame 0 after frame 10 (frames must not decrease)"),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(BAD_FILES))
+def test_malformed_trajectory_file_through_the_cli(tmp_path, kind):
+    data = tmp_path / "data"
+    data.mkdir()
+    raw, frag = BAD_FILES[kind]
+    (data / "crowds_zara01.txt").write_bytes(raw)
+    code, out, err = cli(["experiment=real_tables", f"task.data_root={data}", "task.scenes=[zara1]",
+                          f"hydra.run.dir={tmp_path / 'run'}"])
+    assert_refused(code, out, err, "dslearn-run: data error: " + str(data / frag.split(":")[0]) + ":" + frag.split(":", 1)[1],
+                   tmp_path / "run")
+    status = json.loads((tmp_path / "run" / "status.json").read_text())
+    assert status["status"] == "failed" and status["config_error"] is True
+
+
+def test_data_root_errors_name_task_data_root(tmp_path):
+    f = tmp_path / "afile"
+    f.write_text("x")
+    for root, frag in ((tmp_path / "missing", "does not exist"), (f, "is a file, not a folder"), (tmp_path, "has no file crowds_zara01.txt")):
+        code, out, err = cli(["experiment=real_tables", f"task.data_root={root}", "task.scenes=[zara1]",
+                              f"hydra.run.dir={tmp_path / 'run'}"])
+        assert_refused(code, out, err, f"dslearn-run: configuration error: task.data_root='{root}' {frag}", tmp_path / "run")
+
+
+def test_interrupt_and_out_of_memory_in_process(tmp_path, monkeypatch):
+    from dslearn.studies.yu import YuStudy
+
+    def boom(exc):
+        def run(self, progress=False):
+            raise exc
+        return run
+
+    for i, (exc, code_, frag, status) in enumerate((
+        (KeyboardInterrupt(), 130, "dslearn-run: interrupted: Ctrl-C: no results written;", "interrupted"),
+        (MemoryError(), 2, "dslearn-run: resource error: out of memory (MemoryError", "failed"),
+        (RuntimeError("[enforce fail at alloc_cpu.cpp:116] DefaultCPUAllocator: can't allocate memory: you tried "
+                      "to allocate 34359738368 bytes"), 2, "can't allocate memory", "failed"),
+    )):
+        monkeypatch.setattr(YuStudy, "run", boom(exc))
+        run = tmp_path / f"r{i}"
+        code, out, err = cli(["model=lin", "data.train_episodes=0", "data.test_episodes=1", f"hydra.run.dir={run}"])
+        assert_refused(code, out, err, frag, run, exit_code=code_)
+        assert json.loads((run / "status.json").read_text())["status"] == status
+
+
+def test_busy_run_folder_is_refused_and_stale_lock_taken_over(tmp_path):
+    from dslearn.io import LOCK_FILE, RunLock
+
+    run = tmp_path / "run"
+    with RunLock(run):  # another live run (this process) holds the folder
+        code, out, err = cli(["model=lin", "data.train_episodes=0", "data.test_episodes=1", f"hydra.run.dir={run}"])
+        assert_refused(code, out, err, f"dslearn-run: run folder busy: {run} is in use by another dslearn-run (pid {os.getpid()}", run)
+        assert not (run / "status.json").exists()  # the owner's status is not touched
+        with pytest.raises(Exception, match="is in use by another dslearn-run"):
+            RunLock(run).acquire()
+    # a lock left by a dead process is taken over
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    (run / LOCK_FILE).write_text(f"{dead.stdout.strip()} somehost\n")
+    code, out, err = cli(["model=lin", "data.train_episodes=0", "data.test_episodes=1", "print_table=false", f"hydra.run.dir={run}"])
+    assert code == 0 and (run / "results.csv").is_file(), err
+    assert json.loads((run / "status.json").read_text())["status"] == "done"
+
+
+# ------------------------------------------------------------------------------------------
+# dslearn-report
+
+
+def test_report_bad_inputs(tmp_path):
+    from dslearn.report import main as report_main
+
+    (tmp_path / "bin.csv").write_bytes(bytes(range(256)) * 4)
+    (tmp_path / "latin1.csv").write_bytes("model,metric,value\ncaf\xe9,track_err,0.1\n".encode("latin-1"))
+    (tmp_path / "nonnum.csv").write_text("model,metric,value\nlin,track_err,0.1\nlin,track_err,abc\n")
+    (tmp_path / "nohead.csv").write_text("model,score\nlin,0.1\n")
+    (tmp_path / "empty.csv").write_text("")
+    (tmp_path / "bad.parquet").write_bytes(b"not parquet")
+    (tmp_path / "emptydir").mkdir()
+    (tmp_path / "afile").write_text("x")
+    good = tmp_path / "good.csv"
+    good.write_text("model,metric,value\nlin,track_err,0.1\n")
+    missing = tmp_path / "nosuch" / "dir"
+    for argv, frag in (
+        ([str(tmp_path / "bin.csv")], "bin.csv:1: binary file (NUL byte), not a text CSV table"),
+        ([str(tmp_path / "latin1.csv")], "latin1.csv:2: not a UTF-8 text CSV file"),
+        ([str(tmp_path / "nonnum.csv")], "nonnum.csv:3: non-numeric value 'abc' in the 'value' column"),
+        ([str(tmp_path / "nohead.csv")], "nohead.csv:1: header lacks the 'metric' and 'value' columns"),
+        ([str(tmp_path / "empty.csv")], "empty.csv:1: empty file"),
+        ([str(tmp_path / "bad.parquet")], "bad.parquet: not a readable Parquet file"),
+        ([str(tmp_path / "emptydir")], "no results.csv found under"),
+        ([str(missing)], f"{missing}: no such file or folder"),
+        ([str(good), "--out", str(tmp_path / "afile")], f"--out {tmp_path / 'afile'} is an existing file; give a folder"),
+    ):
+        code, out, err = cli(argv, main=report_main)
+        assert_refused(code, out, err, frag, prog="dslearn-report")
+    assert not (tmp_path / "nosuch").exists()  # a nonexistent path is not created
+    assert (tmp_path / "afile").read_text() == "x"
+    assert not list(tmp_path.rglob("report.md")) and not list(tmp_path.rglob("summary.csv"))
+
+
+# ------------------------------------------------------------------------------------------
+# function-level checks
 
 
 def test_bad_entry_and_network(make_cfg):
     from dslearn.run import resolve_entry
     from dslearn.studies.yu import YuStudy
 
-    with pytest.raises(ConfigError, match="task.entry='nomodule' must look like 'package.module:function'"):
+    with pytest.raises(ConfigError, match="task.entry='nomodule' is not a registered study entry"):
         resolve_entry("nomodule")
-    with pytest.raises(ConfigError, match="cannot be imported"):
+    with pytest.raises(ConfigError, match="is not a registered study entry"):
         resolve_entry("dslearn.nosuch:run")
+    assert resolve_entry("dslearn.studies.yu:run").__name__ == "run"
     cfg = make_cfg("network.comm_radius=0.5")
     with pytest.raises(ConfigError, match="disconnected"):
         YuStudy.from_config(cfg)
@@ -91,10 +370,6 @@ def test_yu_faults_task_checks(make_cfg):
         with pytest.raises(ConfigError) as e:
             validate(make_cfg("experiment=yu_faults", *ov))
         assert msg in str(e.value), (ov, str(e.value))
-
-
-# ------------------------------------------------------------------------------------------
-# data files
 
 
 def test_result_tables(tmp_path):
@@ -121,6 +396,14 @@ def test_result_tables(tmp_path):
     assert "meta.json is not valid JSON" in check_complete(run)[1]
     (run / "meta.json").write_text(json.dumps({"rows": 5}))
     assert "has 1 rows, meta.json says 5" in check_complete(run)[1]
+    (run / "meta.json").write_text("[1, 2]")
+    assert check_complete(run) == (False, "meta.json is not a JSON object")
+    # corrupted files of a sweep being resumed: refused as broken, never a crash
+    (run / "meta.json").write_bytes(b"\xff\xfe\x00garbage")
+    assert check_complete(run) == (False, "meta.json is not valid JSON (UnicodeDecodeError)")
+    (run / "meta.json").write_text(json.dumps({"rows": 1}))
+    (run / "results.csv").write_bytes(b"metric,value\n\x89PNG\x00\xff")
+    assert check_complete(run) == (False, "results.csv is not UTF-8 text (byte 13): corrupted")
 
 
 def test_trajectory_file_broken_line(tmp_path):
@@ -154,14 +437,44 @@ def test_model_files_safe_and_matching(tmp_path):
         sfm.load(tmp_path / "missing.pt")
 
 
-def test_cli_exit_code_2_one_line():
+# ------------------------------------------------------------------------------------------
+# the console script itself (subprocess: the real interpreter start, signals)
+
+
+def _env():
+    return {**os.environ, "CI": "1"}
+
+
+def test_cli_exit_code_2_one_line(tmp_path):
     """dslearn-run: a ConfigError is one line on stderr and exit code 2, before any work."""
-    env = {**os.environ, "CI": "1"}
-    r = subprocess.run([sys.executable, "-m", "dslearn.run", "network.meas_std=-1", "hydra.run.dir=/nonexistent/never"],
-                       cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-m", "dslearn.run", "network.meas_std=-1", f"hydra.run.dir={tmp_path / 'never'}"],
+                       cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=300)
     assert r.returncode == 2
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert lines == ["dslearn-run: configuration error: network.meas_std=-1.0 must be > 0"]
-    r = subprocess.run([sys.executable, "-m", "dslearn.run", "-m", "model=lin,nosuchmodel"],
-                       cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert not (tmp_path / "never").exists()
+    r = subprocess.run([sys.executable, "-m", "dslearn.run", "-m", "model=lin,nosuchmodel", f"hydra.sweep.dir={tmp_path / 's'}"],
+                       cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "nosuchmodel" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in r.stderr + r.stdout
+
+
+def test_cli_ctrl_c_exit_130_status_interrupted(tmp_path):
+    run = tmp_path / "run"
+    p = subprocess.Popen([sys.executable, "-m", "dslearn.run", "model=gp_increment", "data.train_episodes=400",
+                          "data.test_episodes=2", f"hydra.run.dir={run}"],
+                         cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    try:
+        while not ((run / "run.log").is_file() and "starting" in (run / "run.log").read_text()):
+            assert p.poll() is None, p.communicate()
+            assert time.time() - t0 < 240
+            time.sleep(0.1)
+        time.sleep(0.5)
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert_refused(p.returncode, out, err, "dslearn-run: interrupted: Ctrl-C: no results written;", run, exit_code=130)
+    assert json.loads((run / "status.json").read_text())["status"] == "interrupted"

@@ -41,15 +41,34 @@ def _write(tmp_path, name, text):
         ("fracped.txt", "0\t1.25\t1.0\t2.0\n", 1, "ped_id 1.25 is not an integer"),
         ("blank.txt", "0\t1\t1.0\t2.0\n\n10\t1\t1.0\t2.0\n", 2, "expected 4 fields"),
         ("empty.txt", "", 1, "empty file"),
+        ("header.txt", "frame\tped\tx\ty\n0\t1\t1.0\t2.0\n", 1, "(a header line? the files have none)"),
+        ("binary.txt", b"\x00\x01\x02\x03", 1, "binary file (NUL byte)"),
+        ("binary2.txt", b"0\t1\t1.0\t2.0\n\x7fELF\x02\x01\x00\x00", 2, "binary file (NUL byte)"),
+        ("latin1.txt", "0\t1\t1.0\t2.0\n10\t1\t1.5\t2.0\n20\t1\tcaf\xe9\t2\n".encode("latin-1"), 3,
+         "byte 0xe9 is not UTF-8 text (a Latin-1 or binary file?)"),
+        ("bom.txt", b"\xef\xbb\xbf0\t1\t1.0\t2.0\n", 1, "UTF-8 byte-order mark (BOM)"),
+        ("utf16.txt", "0\t1\t1.0\t2.0\n".encode("utf-16"), 1, "UTF-16 text"),
+        ("dupfirst.txt", "0\t1\t1.0\t2.0\n0\t1\t1.0\t2.0\n", 2, "duplicate (frame, ped) = (0, 1), first seen at line 1"),
+        ("crlf_nan.txt", "0\t1\t1.0\t2.0\r\n10\t1\t-inf\t2.0\r\n", 2, "NaN or infinite value"),
     ],
 )
 def test_malformed_files(tmp_path, name, text, line, words):
-    p = _write(tmp_path, name, text)
+    """Every malformed file is refused with ONE line ``<file>:<line>: <what>`` (the CLI prints it
+    as ``dslearn-run: data error: ...``, exit code 2; see tests/test_bad_input.py)."""
+    p = tmp_path / name
+    p.write_bytes(text if isinstance(text, bytes) else text.encode())
     with pytest.raises(DataFormatError) as e:
         read_trajectories(p)
     msg = str(e.value)
-    assert f"{name}:{line}:" in msg
+    assert msg.startswith(f"{p}:{line}: "), msg
     assert words in msg
+    assert "\n" not in msg
+
+
+def test_folder_instead_of_file(tmp_path):
+    (tmp_path / "biwi_eth.txt").mkdir()
+    with pytest.raises(DataFormatError, match="biwi_eth.txt: is a folder, expected a trajectory file"):
+        read_trajectories(tmp_path / "biwi_eth.txt")
 
 
 def test_good_file_round_trip(tmp_path):
@@ -88,8 +107,10 @@ def test_scene_from_fixture_files(tmp_path, monkeypatch):
     monkeypatch.setenv(ethucy.ENV_ROOT, str(tmp_path))
     assert default_root() == tmp_path
     monkeypatch.setenv(ethucy.ENV_ROOT, str(tmp_path / "missing"))
-    with pytest.raises(ConfigError, match="data root"):
+    with pytest.raises(ConfigError, match=r"set task.data_root=<folder> \(or \$DSLEARN_ETHUCY_ROOT\)"):
         default_root()
+    with pytest.raises(ConfigError, match=r"task.data_root='.*missing' does not exist"):
+        load_scene("zara1", root=tmp_path / "missing")
 
 
 def test_frame_not_multiple_of_ten(tmp_path):

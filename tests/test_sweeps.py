@@ -95,9 +95,20 @@ def test_basic_sweep_one_table_and_report(basic_sweep):
 
     text = report(basic_sweep)
     assert "Table I" in text or "track_err" in text
-    for f in ("summary.csv", "tables.md", "tables.tex", "report.md"):
+    for f in ("summary.csv", "tables.md", "tables.tex", "report.md", "figure.png", "figure_data.csv"):
         assert (basic_sweep / f).is_file(), f
     assert "\\begin{tabular}" in (basic_sweep / "tables.tex").read_text()
+    # the default figure: every metric against the swept keys, one point per (model, consensus)
+    fig = pd.read_csv(basic_sweep / "figure_data.csv")
+    assert set(fig["metric"]) == {"track_err", "track_rmse", "nees", "pred_err"}
+    assert len(fig) == 4 * 4 and (fig["n"] == 2).all() and (fig["error_bars"] == "std over episodes").all()
+    sens = t[t["node_kind"] == "sensor"].groupby(["ov.model", "ov.consensus", "metric", "episode"])["value"].mean()
+    ref = sens.groupby(["ov.model", "ov.consensus", "metric"]).agg(["mean", "std"])
+    for _, row in fig.iterrows():
+        m, sd = ref.loc[(row["ov.model"], row["ov.consensus"], row["metric"])]
+        assert abs(row["mean"] - m) < 1e-12 and abs(row["err"] - sd) < 1e-12
+    md = (basic_sweep / "report.md").read_text()
+    assert "Open this file first" in md and "figure.png" in md and "- `yu_table1.csv`" in md
 
 
 @pytest.mark.slow
@@ -130,10 +141,15 @@ def test_kill_and_resume_equals_uninterrupted(tmp_path):
     broken = next(i for i in range(4) if not check_complete(killed / str(i))[0])
     (killed / str(broken)).mkdir(exist_ok=True)
     (killed / str(broken) / "results.csv").write_text("metric,value\ntrack_err,0.")
+    # and so must a finished job whose results.csv got corrupted into binary (not UTF-8) bytes
+    corrupt = next(i for i in range(4) if check_complete(killed / str(i))[0])
+    (killed / str(corrupt) / "results.csv").write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\xff\xfe" * 20)
     r = _sweep(killed, *grid, "resume=true")
     assert r.returncode == 0, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr and "UnicodeDecodeError" not in r.stderr
+    assert f"job {corrupt}: resume: re-running" in r.stdout and "results.csv is not UTF-8 text" in r.stdout
     s = json.loads((killed / "sweep.json").read_text())
-    assert (s["jobs"], s["skipped"], s["done"]) == (4, done_before, 4 - done_before)
+    assert (s["jobs"], s["skipped"], s["done"]) == (4, done_before - 1, 4 - done_before + 1)
     clean = tmp_path / "clean"
     r = _sweep(clean, *grid)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -154,7 +170,11 @@ def test_report_mean_std_over_seeds(tmp_path):
     lin = s[s.model == "lin"].iloc[0]
     assert lin["n_seeds"] == 3 and abs(lin["mean"] - 1.11) < 1e-12 and abs(lin["std"] - 0.1) < 1e-12
     assert "1.11 ± 0.1" in text
-    assert (tmp_path / "track_err.png").is_file() and "\\begin{tabular}" in (tmp_path / "tables.tex").read_text()
+    assert (tmp_path / "figure.png").is_file() and "\\begin{tabular}" in (tmp_path / "tables.tex").read_text()
+    fig = pd.read_csv(tmp_path / "figure_data.csv").set_index("model")
+    assert list(fig.index) == ["lin", "gp"] and (fig["error_bars"] == "std over seeds").all()
+    assert abs(fig.loc["lin", "mean"] - 1.11) < 1e-12 and abs(fig.loc["lin", "err"] - 0.1) < 1e-12
+    assert abs(fig.loc["gp", "mean"] - 0.61) < 1e-12 and fig.loc["gp", "n"] == 3
 
 
 def test_overrides_that_duplicate_a_result_column_are_not_separate_keys():
@@ -177,4 +197,4 @@ def test_overrides_that_duplicate_a_result_column_are_not_separate_keys():
     assert len(sens) == 1 and sens["n"].iloc[0] == 2 and sens["mean"].iloc[0] == 2.0
     assert "ov.model.lengthscale" in s.columns  # an override with no result column stays a key
     tab = table_prediction(s)
-    assert list(tab["node"]) == ["sensor1", "sensor2", "avg"] and list(tab.columns) == ["node", "gp (ind.)"]
+    assert list(tab["node"]) == ["sensor1", "sensor2", "sensor average"] and list(tab.columns) == ["node", "gp (ind.)"]

@@ -85,16 +85,40 @@ def default_root() -> Path:
     """The data folder: ``$DSLEARN_ETHUCY_ROOT`` if set, else ``<repo>/../shared/data/eth_ucy``.
 
     Raises:
-        ConfigError: naming ``data root`` when the folder does not exist.
+        ConfigError: naming ``task.data_root`` when the folder does not exist.
     """
     env = os.environ.get(ENV_ROOT)
     root = Path(env) if env else Path(__file__).resolve().parents[2].parent / "shared" / "data" / "eth_ucy"
     if not root.is_dir():
+        where = f"${ENV_ROOT}={env}" if env else "the default data folder"
         raise ConfigError(
-            f"data root {str(root)!r} does not exist; set {ENV_ROOT} to the eth_ucy folder "
-            "(the one holding biwi_eth.txt ...) or pass root=..."
+            f"{where} ({str(root)!r}) does not exist; set task.data_root=<folder> (or ${ENV_ROOT}) to the "
+            "eth_ucy folder, the one holding biwi_eth.txt, crowds_zara01.txt, ..."
         )
     return root
+
+
+#: name of the data-root key in every study's task config (one name everywhere)
+DATA_ROOT_KEY = "task.data_root"
+
+
+def _decode(path: Path, raw: bytes) -> str:
+    """The file's text; DataFormatError naming the file and line for binary, BOM or non-UTF-8 bytes."""
+    if raw.startswith(b"\xef\xbb\xbf"):
+        raise DataFormatError(f"{path}:1: starts with a UTF-8 byte-order mark (BOM); save it as plain UTF-8 without BOM")
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise DataFormatError(f"{path}:1: UTF-16 text; save it as plain UTF-8 (ASCII numbers)")
+    if b"\x00" in raw[:65536]:
+        line = raw[: raw.index(b"\x00")].count(b"\n") + 1
+        raise DataFormatError(f"{path}:{line}: binary file (NUL byte); expected plain-text lines 'frame ped x y'")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = raw[: e.start].count(b"\n") + 1
+        raise DataFormatError(
+            f"{path}:{line}: byte 0x{raw[e.start]:02x} is not UTF-8 text (a Latin-1 or binary file?); "
+            "expected plain-text lines 'frame ped x y'"
+        ) from None
 
 
 def read_trajectories(path: str | Path) -> pd.DataFrame:
@@ -116,8 +140,13 @@ def read_trajectories(path: str | Path) -> pd.DataFrame:
         FileNotFoundError: the file does not exist.
     """
     path = Path(path)
-    with open(path, "r", encoding="utf-8", newline=None) as f:
-        lines = f.read().splitlines()
+    if path.is_dir():
+        raise DataFormatError(f"{path}: is a folder, expected a trajectory file")
+    try:
+        raw = path.read_bytes()
+    except PermissionError:
+        raise DataFormatError(f"{path}: cannot be read (permission denied)") from None
+    lines = _decode(path, raw).splitlines()
     if not lines:
         raise DataFormatError(f"{path}:1: empty file (expected lines 'frame ped x y')")
     n = len(lines)
@@ -129,7 +158,8 @@ def read_trajectories(path: str | Path) -> pd.DataFrame:
         try:
             row = [float(p) for p in parts]
         except ValueError:
-            raise DataFormatError(f"{path}:{i + 1}: non-numeric field in {line!r}") from None
+            hint = " (a header line? the files have none)" if i == 0 and not any(_is_number(p) for p in parts) else ""
+            raise DataFormatError(f"{path}:{i + 1}: non-numeric field in {line!r}{hint}") from None
         if not all(math.isfinite(v) for v in row):
             raise DataFormatError(f"{path}:{i + 1}: NaN or infinite value in {line!r}")
         vals[i] = row
@@ -156,6 +186,14 @@ def read_trajectories(path: str | Path) -> pd.DataFrame:
         )
     df = df.sort_values(["frame", "ped"], kind="stable").drop(columns="line").reset_index(drop=True)
     return df
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def scene_dt(file_name: str, convention: str = "benchmark") -> float:
@@ -215,7 +253,8 @@ def load_scene(name: str, root: str | Path | None = None, convention: str = "ben
     check_choice("convention", convention, CONVENTIONS)
     root = default_root() if root is None else Path(root)
     if not root.is_dir():
-        raise ConfigError(f"data root {str(root)!r} does not exist")
+        what = "is a file, not a folder" if root.exists() else "does not exist"
+        raise ConfigError(f"{DATA_ROOT_KEY}={str(root)!r} {what}; give the eth_ucy folder (the one holding biwi_eth.txt, ...)")
     dts = {scene_dt(f, convention) for f in ALL_SCENES[name]}
     if len(dts) != 1:  # cannot happen with the standard scenes
         raise ConfigError(f"scene {name}: files have different time steps {sorted(dts)}")
@@ -224,7 +263,7 @@ def load_scene(name: str, root: str | Path | None = None, convention: str = "ben
     for k, fname in enumerate(ALL_SCENES[name]):
         path = root / fname
         if not path.is_file():
-            raise ConfigError(f"data root {str(root)!r} has no file {fname} (scene {name})")
+            raise ConfigError(f"{DATA_ROOT_KEY}={str(root)!r} has no file {fname} (scene {name})")
         d = read_trajectories(path)
         off = d["frame"] % FRAMES_PER_STEP != 0
         if off.any():

@@ -1,4 +1,8 @@
-"""Tables and figures of the Yu study, drawn from result tables only."""
+"""Tables and figures of the Yu study, drawn from result tables only.
+
+Cells are mean ± std over test episodes; the ``sensor average`` row (node ``avg`` in
+``summary.csv``) is the papers' Average row: the mean over sensing nodes of their means and of
+their standard deviations."""
 
 from __future__ import annotations
 
@@ -50,6 +54,15 @@ def _nodes(s):
     return [n for n in nodes if n != "avg"] + (["avg"] if "avg" in nodes else [])
 
 
+def _label_avg(tab: pd.DataFrame) -> pd.DataFrame:
+    """The ``avg`` node shown as "sensor average" (the papers' Average row), after the nodes."""
+    from ..report import AVG_LABEL
+
+    if "node" in tab.columns:
+        tab["node"] = tab["node"].map(lambda n: AVG_LABEL if n == "avg" else n)
+    return tab
+
+
 def table_tracking(summary: pd.DataFrame, metric: str = "track_err") -> pd.DataFrame:
     """Table I shape: rows (fusion, node), columns model, cells mean ± std."""
     s = _final(summary)
@@ -61,7 +74,7 @@ def table_tracking(summary: pd.DataFrame, metric: str = "track_err") -> pd.DataF
     tab = s.pivot_table(index=["fusion", "node"], columns="model", values="cell", aggfunc="first")
     tab = tab.reindex(columns=_models(s))
     order = [(f, n) for f in dict.fromkeys(s["fusion"]) for n in _nodes(s) if (f, n) in tab.index]
-    return tab.reindex(order).reset_index()
+    return _label_avg(tab.reindex(order).reset_index())
 
 
 def table_prediction(summary: pd.DataFrame) -> pd.DataFrame:
@@ -82,7 +95,7 @@ def table_prediction(summary: pd.DataFrame) -> pd.DataFrame:
             label = model
         cols[label] = g.set_index("node").apply(lambda r: _cell(r["mean"], r["std"] if r["std"] == r["std"] else 0), axis=1)
     tab = pd.DataFrame(cols).reindex(_nodes(s))
-    return tab.reset_index().rename(columns={"index": "node"})
+    return _label_avg(tab.reset_index().rename(columns={"index": "node"}))
 
 
 def fig_training(summary: pd.DataFrame, out: Path) -> Path | None:
@@ -95,14 +108,14 @@ def fig_training(summary: pd.DataFrame, out: Path) -> Path | None:
         g = g.sort_values("train_seen")
         axes[0].errorbar(g["train_seen"], g["mean"], yerr=g["std"], capsize=2, marker="o", label=f"{model}, L={it}")
     axes[0].set_xlabel("training episodes")
-    axes[0].set_ylabel("tracking error (avg over sensors)")
+    axes[0].set_ylabel("tracking error [m] (sensor average)")
     axes[0].legend(fontsize=7)
     last = s[s["train_seen"] == s["train_seen"].max()]
     for model, g in last.groupby("model"):
         g = g.sort_values("iterations")
         axes[1].errorbar(g["iterations"].astype(int), g["mean"], yerr=g["std"], capsize=2, marker="o", label=model)
     axes[1].set_xlabel("consensus iterations L")
-    axes[1].set_ylabel(f"tracking error after {int(s['train_seen'].max())} episodes")
+    axes[1].set_ylabel(f"tracking error [m] after {int(s['train_seen'].max())} episodes")
     axes[1].legend(fontsize=7)
     fig.tight_layout()
     path = out / "yu_fig2.png"
@@ -117,10 +130,10 @@ def yu_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> st
     out_dir = Path(out_dir)
     parts = []
     for name, title, tab in (
-        ("yu_table1", "Tracking error (Table I shape; paper's formula, mean position error)", table_tracking(summary)),
-        ("yu_table1_rmse", "Tracking RMSE", table_tracking(summary, "track_rmse")),
-        ("yu_table2", "Prediction error from the true state at t=0 (Table II shape)", table_prediction(summary)),
-        ("yu_nees", "Average NEES / Dx (1 = consistent)", table_tracking(summary, "nees")),
+        ("yu_table1", "Tracking error [m] (Table I shape; paper's formula, mean position error)", table_tracking(summary)),
+        ("yu_table1_rmse", "Tracking RMSE [m]", table_tracking(summary, "track_rmse")),
+        ("yu_table2", "Prediction error [m] from the true state at t=0 (Table II shape)", table_prediction(summary)),
+        ("yu_nees", "NEES/Dx, averaged over time (1 = consistent)", table_tracking(summary, "nees")),
     ):
         if tab.empty:
             continue

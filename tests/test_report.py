@@ -1,0 +1,134 @@
+"""dslearn-report for a newcomer: units and labels, the sensor average set apart, the default
+figure of any sweep (numbers checked against closed forms), report.md as the file to open."""
+
+import contextlib
+import io
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from dslearn.report import (
+    AVG_LABEL,
+    console_table,
+    figure_data,
+    main,
+    metric_label,
+    metric_unit,
+    report,
+    summarize,
+    swept_keys,
+)
+
+
+def test_units_and_labels():
+    assert metric_label("track_err") == "track_err [m]" and metric_label("pred_err") == "pred_err [m]"
+    assert metric_label("nees") == "NEES/Dx" and metric_unit("nees") == "1"
+    assert metric_label("ade") == "ade [m]" and metric_label("fde") == "fde [m]"
+    assert metric_label("wall_time_s") == "wall_time_s [s]" and metric_label("lost_track_m") == "lost_track_m [m]"
+    assert metric_label("gate_reject_frac") == "gate_reject_frac" and metric_unit("gate_reject_frac") == "1"
+    assert metric_unit("something") is None and metric_label("something") == "something"
+
+
+def _yu_like(seeds=(0,), lengthscales=(None,)):
+    rows = []
+    for ls in lengthscales:
+        for seed in seeds:
+            for e in range(3):
+                for node, kind, base in (("sensor1", "sensor", 1.0), ("sensor2", "sensor", 3.0), ("comm1", "comm", 50.0)):
+                    for metric, scale in (("track_err", 1.0), ("nees", 10.0)):
+                        r = dict(study="s", task="none", model="gp", consensus="hybrid", node=node, node_kind=kind,
+                                 metric=metric, seed=seed, episode=e,
+                                 value=scale * (base + 0.1 * e + 0.01 * seed + (0 if ls is None else float(ls))))
+                        if ls is not None:
+                            r["ov.model.lengthscale"] = ls
+                            r["ov.seed"] = seed
+                        rows.append(r)
+    return pd.DataFrame(rows)
+
+
+def test_console_table_sets_the_sensor_average_apart():
+    text = console_table(summarize(_yu_like()))
+    lines = text.splitlines()
+    assert lines[0] == "study=s, model=gp, consensus=hybrid"
+    assert lines[1].split() == ["node", "track_err", "[m]", "NEES/Dx"]
+    body = [ln.split()[0] for ln in lines[3:]]
+    assert body[:3] == ["sensor1", "sensor2", "comm1"]
+    assert set(lines[-2].replace(" ", "")) == {"-"}  # a rule before the average row
+    assert lines[-1].startswith(AVG_LABEL)
+    # the papers' Average row: mean of the sensor means (1.1 and 3.1), mean of their stds (0.1)
+    assert "2.100 ± 0.100" in lines[-1]
+    assert "avg" not in "\n".join(lines[3:])
+
+
+def test_figure_data_one_seed_error_bars_over_episodes():
+    df = _yu_like(lengthscales=(0.5, 2.0))
+    df = df[df["seed"] == 0]
+    assert swept_keys(df) == ["ov.model.lengthscale"]
+    data, over = figure_data(df)
+    assert over == "episodes"
+    g = data[(data["metric"] == "track_err")].set_index("ov.model.lengthscale")
+    # per episode e the sensor average is (1 + 3)/2 + 0.1 e + ls; mean over e = 0,1,2: 2.1 + ls; std 0.1
+    for ls in (0.5, 2.0):
+        assert g.loc[ls, "mean"] == pytest.approx(2.1 + ls, abs=1e-12)
+        assert g.loc[ls, "err"] == pytest.approx(0.1, abs=1e-12)
+        assert g.loc[ls, "n"] == 3
+
+
+def test_figure_data_several_seeds_error_bars_over_seeds():
+    df = _yu_like(seeds=(0, 1, 2, 3), lengthscales=(1.0,))
+    data, over = figure_data(df)
+    assert over == "seeds"
+    row = data[data["metric"] == "nees"].iloc[0]
+    # per seed: mean over episodes = 10 * (2.1 + 0.01 s + 1); over seeds s = 0..3
+    per_seed = [10 * (3.1 + 0.01 * s) for s in range(4)]
+    assert row["mean"] == pytest.approx(np.mean(per_seed), abs=1e-12)
+    assert row["err"] == pytest.approx(np.std(per_seed, ddof=1), abs=1e-12)
+    assert row["n"] == 4
+
+
+def test_report_writes_figure_and_index(tmp_path):
+    df = _yu_like(seeds=(0, 1), lengthscales=(0.5, 1.0, 2.0))
+    p = tmp_path / "sweep_results.csv"
+    df.to_csv(p, index=False)
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        main([str(p), "--out", str(tmp_path / "rep")])
+    text = out.getvalue().splitlines()
+    rep = tmp_path / "rep"
+    assert text[-2] == f"open first: {rep / 'report.md'}"
+    assert text[-1].startswith("wrote: report.md, summary.csv, summary_seeds.csv, tables.md, tables.tex, figure.png, figure_data.csv")
+    png = (rep / "figure.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    md = (rep / "report.md").read_text()
+    assert md.startswith(f"# dslearn report: {p}\n\nOpen this file first.") and "![" in md and "## Files written" in md
+    for f in ("summary.csv", "summary_seeds.csv", "tables.md", "tables.tex", "figure.png", "figure_data.csv"):
+        assert f"- `{f}`: " in md and (rep / f).is_file(), f
+    tables = (rep / "tables.md").read_text()
+    assert "### track_err [m]" in tables and "### NEES/Dx" in tables
+    summary = pd.read_csv(rep / "summary.csv")
+    assert "avg" in set(summary["node"])  # machine names stay in the CSV
+    fig = pd.read_csv(rep / "figure_data.csv")
+    assert sorted(fig["ov.model.lengthscale"].unique()) == [0.5, 1.0, 2.0] and (fig["n"] == 2).all()
+    assert err.getvalue() == ""
+
+
+def test_yu_tables_label_the_average(tmp_path):
+    from dslearn.plotting.yu import table_tracking, yu_report
+
+    s = summarize(_yu_like())
+    tab = table_tracking(s)
+    assert list(tab["node"]) == ["sensor1", "sensor2", AVG_LABEL]
+    text = yu_report(_yu_like(), s, tmp_path)
+    assert "Tracking error [m]" in text and "NEES/Dx" in text and "| hybrid | sensor average |" in text
+
+
+def test_report_of_a_single_run_dir(make_cfg, tmp_path):
+    from dslearn.run import execute
+
+    execute(make_cfg("model=lin", "data.train_episodes=0", "data.test_episodes=2", "study=unit"), tmp_path / "r")
+    text = report(tmp_path / "r")
+    assert "Table I" in text
+    assert (tmp_path / "r" / "figure.png").is_file()
+    written = {p.name for p in report.written}
+    assert {"report.md", "summary.csv", "figure.png", "yu_table1.csv", "yu_table1.md"} <= written
