@@ -18,7 +18,9 @@ Two levels:
   measurements by gross errors. The robust update is chi-square gating on the innovation
   (``novel_information(..., gate_prob=p)``, passed through ``track(..., gate_prob=p)``).
 
-Everything is vectorised over episodes and nodes and reproducible from the generators' seeds.
+Everything is vectorised over episodes and nodes and reproducible from the seeds. Every draw
+takes a ``torch.Generator`` or per-episode :class:`~dslearn.streams.Streams` over ``(B,)``; with
+streams, an episode's faults depend only on its own key, never on which episodes share its batch.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from torch import Tensor
 from .consensus.fusion import Fusion
 from .errors import ConfigError, check_choice
 from .sim.scenario import Episodes
+from .streams import Streams, rand, randn
 
 LIVE_WEIGHTS = ("metropolis", "uniform")
 NODE_FAIL_MODES = ("permanent", "transient")
@@ -55,7 +58,7 @@ def live_weights(live: Tensor, method: str = "metropolis") -> Tensor:
     return m / m.sum(-1, keepdim=True)
 
 
-def draw_live_graph(adj: Tensor, alive: Tensor, p_link: float, gen: torch.Generator) -> Tensor:
+def draw_live_graph(adj: Tensor, alive: Tensor, p_link: float, gen: torch.Generator | Streams) -> Tensor:
     """One step's live graphs: ``adj (S, S)``, ``alive (B, S)`` -> ``(B, S, S)`` bool.
 
     Each undirected link is up with probability ``1 - p_link`` (one draw per link, episode and
@@ -64,7 +67,7 @@ def draw_live_graph(adj: Tensor, alive: Tensor, p_link: float, gen: torch.Genera
     b, s = alive.shape
     up = adj.to(torch.bool).unsqueeze(0).expand(b, s, s)
     if p_link > 0:
-        u = torch.rand(b, s, s, generator=gen, dtype=torch.float64)
+        u = rand((b, s, s), gen)
         u = torch.triu(u, 1)
         u = u + u.transpose(-1, -2)  # symmetric: one draw per undirected link
         up = up & (u >= p_link)
@@ -82,7 +85,9 @@ class FaultyFusion:
         adjacency: ``(S, S)`` nominal communication graph.
         p_link: per-step link failure probability in ``[0, 1]``.
         weights: live-graph weights, ``metropolis`` or ``uniform``.
-        seed: seed of the link-failure generator (reset by :meth:`begin` unless ``reseed=False``).
+        seed: seed of the link-failure draws: with :meth:`begin`'s ``episodes``, episode ``e`` of
+            ``split`` draws from its own stream keyed ``(seed, split, e)`` (reset at every
+            :meth:`begin`); otherwise one generator for the batch (reset by ``reseed=True``).
     """
 
     def __init__(self, base: Fusion, adjacency: Tensor, p_link: float = 0.0, weights: str = "metropolis", seed: int = 0):
@@ -110,10 +115,16 @@ class FaultyFusion:
             raise AttributeError(item)
         return getattr(self.base, item)
 
-    def begin(self, alive: Tensor | None, batch: int | None = None, reseed: bool = False) -> None:
-        """Start a track() call: ``alive (S, B, K+1)`` bool (None = every node always alive)."""
-        if reseed:
-            self.gen.manual_seed(self.seed)
+    def begin(self, alive: Tensor | None, batch: int | None = None, reseed: bool = False,
+              episodes: list[int] | None = None, split: str = "test") -> None:
+        """Start a track() call: ``alive (S, B, K+1)`` bool (None = every node always alive).
+
+        ``episodes``: the indices of the batch's episodes in ``split``: each draws its link
+        failures from its own stream (the same whatever batch it is tracked in)."""
+        if episodes is not None:
+            self.gen = Streams.from_keys([(self.seed, split, int(e)) for e in episodes], (len(episodes),))
+        elif reseed:
+            self.gen = torch.Generator().manual_seed(self.seed)
         if alive is None:
             if batch is None:
                 raise ValueError("begin(None) needs the batch size")
@@ -149,7 +160,7 @@ def node_failure_schedule(
     batch: int,
     steps: int,
     frac: float,
-    gen: torch.Generator,
+    gen: torch.Generator | Streams,
     mode: str = "permanent",
     duration: int = 4,
 ) -> Tensor:
@@ -168,10 +179,10 @@ def node_failure_schedule(
     alive = torch.ones(num_nodes, batch, steps + 1, dtype=torch.bool)
     if n_fail == 0 or steps < 1:
         return alive
-    order = torch.rand(batch, num_nodes, generator=gen).argsort(-1)  # random permutation per episode
+    order = rand((batch, num_nodes), gen).argsort(-1)  # random permutation per episode
     failed = torch.zeros(batch, num_nodes, dtype=torch.bool)
     failed.scatter_(1, order[:, :n_fail], True)
-    start = torch.randint(1, steps + 1, (batch, num_nodes), generator=gen)
+    start = 1 + (rand((batch, num_nodes), gen) * steps).long().clamp_max(steps - 1)  # uniform in 1..K
     t = torch.arange(steps + 1).view(1, 1, -1)
     down = t >= start.unsqueeze(-1)
     if mode == "transient":
@@ -186,7 +197,7 @@ def apply_node_failures(ep: Episodes, alive: Tensor) -> Episodes:
     return Episodes(ep.states, torch.where(vis.unsqueeze(-1), ep.meas, torch.zeros_like(ep.meas)), vis)
 
 
-def add_outliers(ep: Episodes, frac: float, std: float, gen: torch.Generator) -> tuple[Episodes, Tensor]:
+def add_outliers(ep: Episodes, frac: float, std: float, gen: torch.Generator | Streams) -> tuple[Episodes, Tensor]:
     """Replace a fraction ``frac`` of the measurements by gross errors ``z + N(0, std^2 I)``.
 
     Returns the new episodes and the ``(S, B, K+1, A)`` bool mask of corrupted measurements.
@@ -195,8 +206,10 @@ def add_outliers(ep: Episodes, frac: float, std: float, gen: torch.Generator) ->
         raise ConfigError(f"faults.outlier_frac={frac!r} must be a fraction in [0, 1]")
     if frac > 0 and not float(std) > 0:
         raise ConfigError(f"faults.outlier_std={std!r} must be > 0")
-    shape = ep.visible.shape
-    hit = (torch.rand(shape, generator=gen) < frac).to(ep.visible.device) & ep.visible
-    noise = torch.randn(*shape, 2, generator=gen, dtype=torch.float64).to(ep.meas) * float(std)
+    s, b = ep.visible.shape[:2]
+    rest = tuple(ep.visible.shape[2:])
+    # drawn episode-first (one stream per episode), then nodes first like the episodes
+    hit = (rand((b, s, *rest), gen) < frac).transpose(0, 1).to(ep.visible.device) & ep.visible
+    noise = randn((b, s, *rest, 2), gen).transpose(0, 1).to(ep.meas) * float(std)
     meas = ep.meas + noise * hit.unsqueeze(-1)
     return Episodes(ep.states, meas, ep.visible), hit

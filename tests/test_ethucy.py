@@ -185,3 +185,34 @@ def test_real_data_counts_and_dt():
     for i in range(0, len(meta), 37):
         k = meta.num_peds[i]
         assert present[i, :, :k].all() and not present[i, :, k:].any()
+
+
+def test_split_scene_by_time_per_file(tmp_path):
+    """The benchmark's validation part starts at each file's VAL_FIRST_FRAME: a time split (no row
+    in both parts, nothing lost); fixture files without a known split go wholly to train."""
+    from dslearn.data.ethucy import VAL_FIRST_FRAME, Scene, split_scene
+
+    cut = VAL_FIRST_FRAME["crowds_zara01.txt"]
+    frames = [cut - 20, cut - 10, cut, cut + 10]
+    df = pd.DataFrame({"frame": frames * 2, "ped": [1] * 4 + [2] * 4, "x": np.arange(8.0), "y": np.zeros(8),
+                       "file": ["crowds_zara01.txt"] * 4 + ["fixture.txt"] * 4})
+    sc = Scene(name="toy", dt=0.4, convention="benchmark", df=df)
+    tr, va = split_scene(sc, "train"), split_scene(sc, "val")
+    assert sorted(va.df["frame"]) == [cut, cut + 10]
+    assert (va.df["file"] == "crowds_zara01.txt").all()
+    assert len(tr.df) == 6 and (tr.df[tr.df["file"] == "crowds_zara01.txt"]["frame"] < cut).all()
+    assert split_scene(sc, "all") is sc
+    with pytest.raises(ConfigError, match="part"):
+        split_scene(sc, "test")
+
+
+def test_physical_time_step_of_eth(tmp_path):
+    """Under the physical convention the biwi_eth rows are 10/15 s apart, the others 0.4 s, and the
+    scene carries that step."""
+    root = tmp_path
+    (root / "biwi_eth.txt").write_text(GOOD)
+    (root / "biwi_hotel.txt").write_text(GOOD)
+    eth = load_scene("eth", root=root, convention="physical")
+    hotel = load_scene("hotel", root=root, convention="physical")
+    assert eth.dt == pytest.approx(2 / 3) and hotel.dt == pytest.approx(0.4)
+    assert load_scene("eth", root=root, convention="benchmark").dt == pytest.approx(0.4)

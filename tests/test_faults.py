@@ -173,3 +173,30 @@ def test_yu_faults_report(tmp_path):
     text = yu_faults.report(df, summarize(df), tmp_path)
     assert "link-failure" in text and (tmp_path / "yu_faults_link.png").is_file() and (tmp_path / "yu_faults_node.png").is_file()
     assert (tmp_path / "yu_faults_joint.csv").is_file()
+
+
+def test_an_episode_s_faults_do_not_depend_on_its_batch():
+    """Per-episode streams: episode 1's node failures, outliers and live graphs are the same alone
+    and inside a batch of three (to the bit)."""
+    from dslearn.faults import add_outliers, draw_live_graph, node_failure_schedule
+    from dslearn.sim.network import make_network
+    from dslearn.sim.scenario import SocialForceScenario, episode_streams
+    from dslearn.streams import Streams
+
+    net = make_network()
+    scen = SocialForceScenario()
+    batch = scen.sample(3, net, episode_streams(7, "test", 0, 3))
+    alone = scen.sample(1, net, episode_streams(7, "test", 1, 1))
+    assert torch.equal(batch.states[1:2], alone.states) and torch.equal(batch.meas[:, 1:2], alone.meas)
+    s, k = net.num_nodes, scen.steps
+    gb = Streams.from_keys([(7, "faults", 0, "test", e) for e in range(3)], (3,))
+    ga = Streams.from_keys([(7, "faults", 0, "test", 1)], (1,))
+    ab = node_failure_schedule(s, 3, k, 0.3, gb)
+    aa = node_failure_schedule(s, 1, k, 0.3, ga)
+    assert torch.equal(ab[:, 1:2], aa)
+    ob, hb = add_outliers(batch, 0.2, 3.0, gb)
+    oa, ha = add_outliers(alone, 0.2, 3.0, ga)
+    assert torch.equal(hb[:, 1:2], ha) and torch.equal(ob.meas[:, 1:2], oa.meas)
+    live_b = draw_live_graph(net.adjacency, ab[:, :, 2].T, 0.4, gb)
+    live_a = draw_live_graph(net.adjacency, aa[:, :, 2].T, 0.4, ga)
+    assert torch.equal(live_b[1:2], live_a)

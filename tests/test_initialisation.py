@@ -19,11 +19,11 @@ D = torch.float64
 
 # the late-sensor layout, written out: sensors 1-4, then communication nodes 1-6; sensor 4 sits
 # below the agents' start squares, more than the sensing range (4 m) away from both
-POSITIONS = [[4.0, 6.0], [2.5, 4.0], [5.5, 4.0], [4.0, 1.1], [1.0, 6.0], [7.0, 6.0],
+POSITIONS = [[4.0, 6.0], [2.5, 4.0], [5.5, 4.0], [4.0, 1.25], [1.0, 6.0], [7.0, 6.0],
              [1.5, 2.0], [6.5, 2.0], [4.0, 3.0], [4.0, 7.5]]
 # the links of `network=yu_blind` (nodes within 3.2 m), written out
-EDGES = [[0, 1], [0, 2], [0, 4], [0, 5], [0, 8], [0, 9], [1, 2], [1, 4], [1, 6], [1, 8], [2, 5], [2, 7],
-         [2, 8], [3, 6], [3, 7], [3, 8], [6, 8], [7, 8]]
+EDGES = [[0, 1], [0, 2], [0, 4], [0, 5], [0, 8], [0, 9], [1, 2], [1, 3], [1, 4], [1, 6], [1, 8], [2, 3],
+         [2, 5], [2, 7], [2, 8], [3, 6], [3, 7], [3, 8], [6, 8], [7, 8]]
 
 
 def _layout():
@@ -49,13 +49,15 @@ def test_layout_premise(make_cfg):
     test, _ = study.sample(scenario, network, D, "cpu")
     vis = test.visible[3]  # (B, K+1, A)
     assert not (vis[:, 0] & vis[:, 1]).any()
-    assert vis[:, :2].any(1).float().mean() < 0.1  # rarely even once
+    assert vis[:, :2].any(1).float().mean() < 0.25  # and mostly not even once
     assert vis.any(1).float().mean() > 0.95
 
 
 def test_sfm_individual_stays_bounded_at_every_sensor(make_cfg):
     """The measured failure: the late sensor's SFM filter diverged to ~100 m with ~4,000 jitter
-    events when both agents' priors sat on one point. Now every sensor stays below 1 m."""
+    events when both agents' priors sat on one point (8.3 m, 3,815 events on this layout before
+    the fix). Now every sensor stays below 1 m; most of the late sensor's error is the diffuse
+    prior's before it first sees the agents (from about t = 3-4, of 12 steps)."""
     study = _study(make_cfg, "sfm", "individual", "data.train_episodes=0", "data.test_episodes=50")
     df = study.run()
     err = _sensor_means(df, "track_err")

@@ -4,6 +4,7 @@ import itertools
 import json
 
 import pandas as pd
+import torch
 import pytest
 
 from dslearn.errors import ConfigError
@@ -171,3 +172,32 @@ def test_cuda_requested_without_device_is_a_config_error(make_cfg):
         pytest.skip("a CUDA device is present")
     with pytest.raises(ConfigError, match="device=cuda"):
         YuStudy.from_config(make_cfg("device=cuda", *TINY))
+
+
+def test_eval_at_checkpoints_equal_separate_runs(make_cfg):
+    """Evaluating after 0, 2 and 3 training episodes in one run gives exactly what separate runs
+    with 0, 2 and 3 training episodes give (the test set does not depend on the training size)."""
+    base = ("model=gp_increment", "consensus=hybrid", "data.test_episodes=3")
+    one = YuStudy.from_config(make_cfg(*base, "data.train_episodes=3", "data.eval_at=[0,2,3]")).run()
+    assert sorted(one["train_seen"].unique()) == [0, 2, 3]
+    for k in (0, 2, 3):
+        sep = YuStudy.from_config(make_cfg(*base, f"data.train_episodes={k}")).run()
+        got = one[one["train_seen"] == k].sort_values(["metric", "node", "episode"])["value"].to_numpy()
+        exp = sep.sort_values(["metric", "node", "episode"])["value"].to_numpy()
+        assert got.shape == exp.shape and abs(got - exp).max() < 1e-12, k
+
+
+def test_an_episode_is_the_same_whatever_the_data_set_size(make_cfg):
+    """One random stream per episode: test episode 2 is the same with 3 or 5 test episodes, and a
+    test episode's results do not depend on the episodes tracked beside it."""
+    a = YuStudy.from_config(make_cfg("model=lin", "consensus=hybrid", "data.train_episodes=0", "data.test_episodes=3"))
+    b = YuStudy.from_config(make_cfg("model=lin", "consensus=hybrid", "data.train_episodes=0", "data.test_episodes=5"))
+    sa, na, *_ = a.build()
+    ta, _ = a.sample(sa, na, torch.float64, "cpu")
+    tb, _ = b.sample(sa, na, torch.float64, "cpu")
+    assert torch.equal(ta.states, tb.states[:3]) and torch.equal(ta.meas, tb.meas[:, :3])
+    ra, rb = a.run(), b.run()
+    key = ["metric", "node", "episode"]
+    ra = ra.sort_values(key)["value"].to_numpy()
+    rb = rb[rb["episode"] < 3].sort_values(key)["value"].to_numpy()
+    assert abs(ra - rb).max() < 1e-12

@@ -10,6 +10,7 @@ from torch import Tensor
 
 from ..errors import ConfigError, check_positive
 from ..models.social_force import SOFTENING, SocialForce
+from ..streams import Streams, rand, randn
 from ..types import AGENT_DIM, StepContext, agents, joint
 from .network import SensorNetwork
 
@@ -92,26 +93,45 @@ class SocialForceScenario:
     def ctx(self) -> StepContext:
         return StepContext(dt=self.dt)
 
-    def sample(self, num: int, network: SensorNetwork, generator: torch.Generator) -> Episodes:
-        """Simulate ``num`` episodes (vectorised over episodes) and the network's measurements."""
+    def sample(self, num: int, network: SensorNetwork, generator: torch.Generator | Streams) -> Episodes:
+        """Simulate ``num`` episodes (vectorised over episodes) and the network's measurements.
+
+        ``generator``: one ``torch.Generator`` for the batch, or :class:`~dslearn.streams.Streams`
+        over ``(num,)`` (one stream per episode, e.g. :func:`episode_streams`): then episode ``i``
+        depends only on its own stream, not on how many episodes are drawn with it.
+        """
         a, k = self.num_agents, self.steps
-        pos0 = self.corners + self.start_size * torch.rand(num, a, 2, generator=generator, dtype=torch.float64)
+        per_ep = isinstance(generator, Streams)
+        pos0 = self.corners + self.start_size * rand((num, a, 2), generator)
+        # an episode's draws, in its stream's order: start positions, process noise, measurement noise
+        noise = randn((num, k, self.state_dim), generator) if per_ep else None
         vel0 = self.sfm.desired.expand(num, a, 2)
         x = joint(torch.cat([pos0, vel0], -1))
         traj = [x]
         ctx = self.ctx()
-        for _ in range(k):
-            x = self.sfm(x, ctx) + self.process_std * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+        for t in range(k):
+            eta = noise[:, t] if per_ep else torch.randn(x.shape, generator=generator, dtype=x.dtype)
+            x = self.sfm(x, ctx) + self.process_std * eta
             traj.append(x)
         return measure(torch.stack(traj, 1), network, generator)
 
 
-def measure(states: Tensor, network: SensorNetwork, generator: torch.Generator) -> Episodes:
+def measure(states: Tensor, network: SensorNetwork, generator: torch.Generator | Streams) -> Episodes:
     """Range-limited noisy position measurements of true joint states ``(B, K+1, 4A)``:
-    noise ``(S, B, K+1, A, 2)`` drawn from ``generator``, zeroed where a node does not see
-    the agent. Used for simulated and for real (ETH/UCY) trajectories alike."""
+    noise ``(S, B, K+1, A, 2)`` drawn from ``generator`` (or, from per-episode
+    :class:`~dslearn.streams.Streams` over ``(B,)``, episode by episode), zeroed where a node does
+    not see the agent. Used for simulated and for real (ETH/UCY) trajectories alike."""
     pos = agents(states)[..., :2]  # (B, K+1, A, 2)
     vis = network.visible(pos)  # (S, B, K+1, A)
-    noise = network.meas_std * torch.randn((network.num_nodes, *pos.shape), generator=generator, dtype=pos.dtype)
+    if isinstance(generator, Streams):
+        noise = network.meas_std * randn((pos.shape[0], network.num_nodes, *pos.shape[1:]), generator, dtype=pos.dtype).transpose(0, 1)
+    else:
+        noise = network.meas_std * torch.randn((network.num_nodes, *pos.shape), generator=generator, dtype=pos.dtype)
     meas = (pos.unsqueeze(0) + noise.to(pos.device)) * vis.unsqueeze(-1)
     return Episodes(states, meas, vis)
+
+
+def episode_streams(seed: int, split: str, start: int, num: int) -> Streams:
+    """One random stream per episode ``start .. start + num - 1`` of ``split`` (``"train"``,
+    ``"test"``, ...): episode ``i`` of a run is the same whatever the data-set size."""
+    return Streams.from_keys([(int(seed), str(split), int(i)) for i in range(start, start + num)], (num,))

@@ -61,7 +61,7 @@ from ..models.gp import OnlineGP
 from ..models.social_force import SocialForce
 from ..sim.network import SensorNetwork
 from ..sim.real import arena_network, scene_extent
-from ..sim.scenario import measure
+from ..sim.scenario import episode_streams, measure
 from ..sim.scenario import Episodes
 from ..tracker import initial_belief, prediction_error, track, tracking_metrics
 from ..types import JITTER, POS, VEL, StepContext, agents, joint, safe_cholesky
@@ -330,9 +330,10 @@ def real_data(cfg: DictConfig, scene_name: str, seed: int, max_train: int, dtype
         float(t.network.meas_std),
         float(t.network.margin),
     )
-    gen = torch.Generator().manual_seed(int(seed) * 1_000_003 + 11)
-    test = measure(te.states, net, gen)
-    train = measure(tr.states, net, gen)
+    # one measurement-noise stream per episode: an episode's measurements do not depend on how
+    # many episodes are drawn
+    test = measure(te.states, net, episode_streams(int(seed), "test", 0, len(te.states)))
+    train = measure(tr.states, net, episode_streams(int(seed), "train", 0, len(tr.states)))
     ext = tuple(float(v) for v in scene_extent(torch.tensor(scene.df[["x", "y"]].to_numpy())))
     info = {
         "episodes_total": len(eps),
@@ -353,8 +354,8 @@ def synthetic_data(cfg: DictConfig, seed: int, max_train: int, dtype, device) ->
     from .yu import build_network, build_scenario
 
     scenario, net = build_scenario(cfg.scenario), build_network(cfg.network)
-    test = scenario.sample(int(cfg.task.test_episodes), net, torch.Generator().manual_seed(seed * 1_000_003 + 1))
-    train = scenario.sample(max_train, net, torch.Generator().manual_seed(seed * 1_000_003 + 2))
+    test = scenario.sample(int(cfg.task.test_episodes), net, episode_streams(seed, "test", 0, int(cfg.task.test_episodes)))
+    train = scenario.sample(max_train, net, episode_streams(seed, "train", 0, max_train))
     info = {"episodes_total": max_train + int(cfg.task.test_episodes), "scene_dt": scenario.dt, "test_meta": None}
     return Data(
         "synthetic", "synthetic", _episodes_to(train, dtype, device), _episodes_to(test, dtype, device), net,

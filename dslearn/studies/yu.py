@@ -34,7 +34,7 @@ from ..models import (
 from ..models.base import MotionModel, ObservationModel
 from ..models.social_force import SOFTENING
 from ..sim.network import SensorNetwork, make_network
-from ..sim.scenario import SocialForceScenario
+from ..sim.scenario import SocialForceScenario, episode_streams
 from ..tracker import initial_belief, prediction_error, track, tracking_metrics
 from ..types import JITTER
 
@@ -216,11 +216,12 @@ class YuStudy:
 
     # running -----------------------------------------------------------------------------
     def sample(self, scenario: SocialForceScenario, network: SensorNetwork, dtype, device):
-        """The (test, train) episodes of this run, on ``device`` in ``dtype``. Separate seeded
-        streams, so the test set is the same whatever the training size."""
+        """The (test, train) episodes of this run, on ``device`` in ``dtype``. One random stream per
+        episode (:func:`~dslearn.sim.scenario.episode_streams`), so episode ``i`` of either set is
+        the same whatever the number of training or test episodes."""
         seed, d = int(self.cfg.seed), self.cfg.data
-        test = scenario.sample(d.test_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 1))
-        train = scenario.sample(d.train_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 2))
+        test = scenario.sample(d.test_episodes, network, episode_streams(seed, "test", 0, d.test_episodes))
+        train = scenario.sample(d.train_episodes, network, episode_streams(seed, "train", 0, d.train_episodes))
         return _to(test, dtype, device), _to(train, dtype, device)
 
     def run(self, progress: bool = False) -> pd.DataFrame:

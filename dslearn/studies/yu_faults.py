@@ -38,6 +38,8 @@ from ..faults import (
     node_failure_schedule,
 )
 from ..filters.information import GATE_STATS
+from ..sim.scenario import episode_streams
+from ..streams import Streams
 from ..tracker import initial_belief, track, tracking_metrics
 from .yu import DTYPES, _resolve_device, _to, build_motion_model, build_network, build_observation, build_scenario
 
@@ -159,16 +161,17 @@ def run(cfg: DictConfig) -> pd.DataFrame:
 
     bar = tqdm(total=cells, desc="yu_faults cells", disable=not bool(cfg.get("progress") or False))
     for si, st in enumerate(grid):
-        # common random numbers: the same data and faults for every model x fusion of a setting
-        gs = torch.Generator().manual_seed(seed * 1_000_003 + 17 * si + 5)
-        test = scenario.sample(t.test_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 1))
-        train = scenario.sample(t.train_episodes, network, torch.Generator().manual_seed(seed * 1_000_003 + 2))
+        # common random numbers: the same data and faults for every model x fusion of a setting;
+        # one stream per episode, so an episode's data and faults do not depend on the batch size
+        test = scenario.sample(t.test_episodes, network, episode_streams(seed, "test", 0, t.test_episodes))
+        train = scenario.sample(t.train_episodes, network, episode_streams(seed, "train", 0, t.train_episodes))
         steps = test.states.shape[1] - 1
         faulty = {}
         for split, ep in (("test", test), ("train", train)):
             if len(ep) == 0:
                 faulty[split] = (ep, torch.ones(s, 0, steps + 1, dtype=torch.bool))
                 continue
+            gs = Streams.from_keys([(seed, "faults", si, split, e) for e in range(len(ep))], (len(ep),))
             alive = node_failure_schedule(s, len(ep), steps, st["node_fail"], gs, t.node_fail_mode, t.node_fail_duration)
             ep = apply_node_failures(ep, alive)
             if st["outlier_frac"] > 0:
@@ -211,10 +214,10 @@ def _cell(cfg, t, st, si, scenario, network, ctx, mcfg, fname, faulty, dtype, de
     if model.learnable:
         for i in range(len(train)):
             ep = train.select(slice(i, i + 1))
-            fusion.begin(alive_tr[:, i : i + 1])
+            fusion.begin(alive_tr[:, i : i + 1], episodes=[i], split="train")
             track(ep, network, model, obs, fusion, ctx, init(ep), learn=True,
                   learn_gate_std=cfg.filter.get("learn_gate_std"), gate_prob=gate)
-    fusion.begin(alive_te, reseed=True)
+    fusion.begin(alive_te, episodes=list(range(alive_te.shape[1])), split="test")
     with torch.no_grad():
         res = track(test, network, model, obs, fusion, ctx, init(test), learn=False, gate_prob=gate)
     m = tracking_metrics(res, test.states)  # (S, B) each
