@@ -4,6 +4,7 @@ A Hydra app with its own config, ``conf/train_lstm.yaml`` (network and schedule 
 ``lstm`` group, ``conf/lstm/default.yaml``)::
 
     dslearn-train-lstm                                   # paper defaults: obs 2, pred 10, 50 epochs, batch 8
+    dslearn-train-lstm lstm.schedule=early_stopping lstm.epochs=200 lstm.patience=10   # stop on val_scenes' loss
     dslearn-train-lstm lstm.pooling=social lstm.epochs=5 train_scenes=[zara1,zara2] val_scenes=[zara3] \\
         train_part=all val_part=all checkpoint=slstm.pt device=cuda
 
@@ -11,7 +12,9 @@ Windows of ``lstm.obs_len + lstm.pred_len`` steps (every pedestrian of a window 
 at all of them) come from ``train_scenes`` (``train_part`` of each file) and
 ``val_scenes`` (``val_part``). Writes the checkpoint (``torch.save`` of state dict +
 hyperparameters; load with :func:`dslearn.models.lstm.load_checkpoint`, safe loading)
-and ``history.csv`` (per-epoch train/val loss) into the run directory.
+and ``history.csv`` (per-epoch train/val loss, learning rate, new-best flag) into the run
+directory. ``lstm.schedule=early_stopping`` stops on the validation loss of ``val_scenes``
+(``lstm.patience``, cap ``lstm.epochs``) and saves the best-validation weights.
 """
 
 from __future__ import annotations
@@ -27,11 +30,13 @@ from omegaconf import DictConfig
 from .data.ethucy import ALL_SCENES, load_scene, split_scene, windows
 from .errors import ConfigError, check_choice
 from .io import atomic_write_csv
-from .models.lstm import SocialLSTM, train_lstm
+from .models.lstm import SCHEDULE_KEYS, SocialLSTM, schedule_from_config, train_lstm
 
 log = logging.getLogger("dslearn.train_lstm")
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
+#: keys of the ``lstm`` group (unknown keys are a ConfigError)
+LSTM_GROUP_KEYS = ("embed", "hidden", "obs_len", "pred_len", "pooling", "grid", "neighbourhood", "noise_std") + SCHEDULE_KEYS
 
 
 def _windows(names, part: str, cfg: DictConfig, length: int) -> torch.Tensor | None:
@@ -39,7 +44,7 @@ def _windows(names, part: str, cfg: DictConfig, length: int) -> torch.Tensor | N
 
     parts = []
     for n in names:
-        sc = split_scene(load_scene(n, root=cfg.get("root"), convention=str(cfg.convention)), part)
+        sc = split_scene(load_scene(n, root=cfg.get("data_root"), convention=str(cfg.convention)), part)
         parts.append(windows(sc, length, int(cfg.stride), int(cfg.min_peds))[0])
     parts = [p for p in parts if p.shape[0] > 0]
     return _cat_windows(parts) if parts else None
@@ -60,7 +65,13 @@ def train(cfg: DictConfig, out_dir: str | Path) -> tuple[SocialLSTM, "object", P
         check_choice(field, cfg[field], ("all", "train", "val"))
     check_choice("convention", cfg.convention, ("benchmark", "physical"))
     c = cfg.lstm
-    dts = {load_scene(s, root=cfg.get("root"), convention=str(cfg.convention)).dt for s in cfg.train_scenes}
+    unknown = sorted(set(c.keys()) - set(LSTM_GROUP_KEYS))
+    if unknown:
+        raise ConfigError(f"lstm has unknown keys {unknown}; allowed: {list(LSTM_GROUP_KEYS)}")
+    sched = schedule_from_config(c, prefix="lstm")
+    if "patience" in sched and not list(cfg.val_scenes):
+        raise ConfigError("lstm.schedule=early_stopping needs validation windows: val_scenes must name at least one scene")
+    dts = {load_scene(s, root=cfg.get("data_root"), convention=str(cfg.convention)).dt for s in cfg.train_scenes}
     if len(dts) > 1:
         raise ConfigError(f"train_scenes mix time steps {sorted(dts)} under convention={cfg.convention}; use convention=benchmark")
     model = SocialLSTM(
@@ -85,8 +96,12 @@ def train(cfg: DictConfig, out_dir: str | Path) -> tuple[SocialLSTM, "object", P
     log.info("training %s on %d windows (%s), validating on %s", model.pooling, tr.shape[0], list(cfg.train_scenes),
              "none" if va is None else f"{va.shape[0]} windows")
     ckpt = Path(cfg.checkpoint) if cfg.get("checkpoint") else Path(out_dir) / f"lstm_{model.pooling}.pt"
-    hist = train_lstm(model, tr, epochs=int(c.epochs), batch_size=int(c.batch_size), lr=float(c.lr), val_windows=va,
-                      seed=int(cfg.seed), progress=bool(cfg.progress), checkpoint=ckpt)
+    if "patience" in sched and va is None:
+        raise ConfigError(f"lstm.schedule=early_stopping: val_scenes {list(cfg.val_scenes)} give no validation window")
+    hist = train_lstm(model, tr, **sched, val_windows=va, seed=int(cfg.seed), progress=bool(cfg.progress), checkpoint=ckpt)
+    if "patience" in sched:
+        log.info("early stopping: %d epochs run, best validation loss %.5f at epoch %d (weights restored)",
+                 len(hist), hist.attrs["best_val_loss"], hist.attrs["best_epoch"])
     atomic_write_csv(hist, Path(out_dir) / "history.csv")
     return model, hist, ckpt
 

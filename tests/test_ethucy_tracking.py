@@ -328,3 +328,23 @@ def test_cm_fused_ignores_uninformed_nodes():
     fused = et.cm_fused(cfg, data, ep)
     err0 = (fused[0, 0].unflatten(-1, (2, 4))[:, :2] - states[0, 0].unflatten(-1, (2, 4))[:, :2]).norm(dim=-1)
     assert (err0 < 0.7).all()  # a plain node average would sit ~2 m off (3 of 4 nodes at the prior's mean)
+
+
+def test_lstm_early_stopping_holds_out_whole_episodes():
+    """Windows carry their episode; early stopping validates on held-out episodes only."""
+    from dslearn.models.lstm import holdout_split
+
+    fused = torch.randn(5, 13, 8, dtype=torch.float64)
+    win, groups = et.lstm_windows(fused, 2, 10)
+    assert win.shape == (5 * 2, 12, 2, 2) and groups.tolist() == [0, 1, 2, 3, 4] * 2
+    tr, va = holdout_split(win, groups, 0.4, seed=0)
+    assert len(tr) + len(va) == len(win) and len(va) == 2 * 2  # 2 of 5 episodes, both windows each
+    # every validation window belongs to a held-out episode: none of its windows is in training
+    va_set = {tuple(w.flatten().tolist()) for w in va}
+    assert not va_set & {tuple(w.flatten().tolist()) for w in tr}
+    cfg = tiny_cfg(protocol="data_size", scenes=[], synthetic=True, data_sizes=[4], seeds=1, plot_episodes=0,
+                   lstm={"schedule": "early_stopping", "epochs": 3, "patience": 1})
+    df = et.run(cfg)
+    assert set(df[df["metric"] == "pred_err"]["model"]) == {"gp_increment", "gp_increment_cv", "lstm"}
+    with pytest.raises(ConfigError, match="task.lstm.schedule"):
+        et.validate(tiny_cfg(lstm={"schedule": "sometimes"}))

@@ -5,7 +5,11 @@ input of each observed step goes through an MLP (``Linear(2, embed) + ReLU``) to
 ``embed``-d feature; an encoder LSTM (``hidden``) reads the observed steps; a decoder LSTM
 (``hidden``, initialised with the encoder's state) runs one step per predicted step and a
 ``Linear(hidden, 2)`` maps its hidden state to the 2-D output. Trained with Adam and an L2
-(mean squared error) loss on the predicted positions (:func:`train_lstm`).
+(mean squared error) loss on the predicted positions (:func:`train_lstm`): either the paper's
+fixed schedule (50 epochs, batch 8, lr 1e-3, last weights) or early stopping on a validation
+set with the best weights restored and an optional on-plateau learning-rate decay
+(:func:`schedule_from_config` reads either from a config; :func:`holdout_split` holds out
+whole episodes for validation).
 
 Inputs and outputs are **displacements**: the input of step ``t`` is ``p_t - p_{t-1}``
 (0 for the first observed step) and the output of each decoder step is the next
@@ -168,8 +172,10 @@ class SocialLSTM(MotionModel):
 
         ``W vec(H_i) = \sum_{j \ne i \text{ in cell } c} W_c h_j`` with ``W_c`` the weight block
         of cell ``c``; only the neighbour pairs inside the grid are touched (equal to
-        ``pool_embed(_pool(...))``, which is tested), so the cost grows with the number of
-        close pairs, not with ``A^2 G^2 H``.
+        ``pool_embed(_pool(...))``, which is tested): each agent that is a neighbour of some
+        pair is projected through all ``G^2`` blocks in one matmul, and each pair adds its
+        cell's block, so the cost grows with the number of agents in close pairs, not with
+        ``A^2 G^2 H``.
         """
         b, a, _ = pos.shape
         g, nb, hd = self.grid, self.neighbourhood, self.hidden
@@ -184,13 +190,13 @@ class SocialLSTM(MotionModel):
             cc = (cell[bi, ii, jj, 0] * g + cell[bi, ii, jj, 1]).long()
         out = lin.bias.expand(b * a, -1)
         if bi.numel():
-            order = torch.argsort(cc)  # group the pairs by cell: one matmul per occupied cell
-            cc, rows_i, rows_j = cc[order], (bi * a + ii)[order], (bi * a + jj)[order]
-            hj = h.reshape(b * a, hd)[rows_j]  # (P, H)
-            w = lin.weight.view(-1, g * g, hd)  # (E, G^2, H)
-            cells, counts = torch.unique_consecutive(cc, return_counts=True)
-            parts = [blk @ w[:, c].T for c, blk in zip(cells.tolist(), hj.split(counts.tolist()))]
-            out = out.index_add(0, rows_i, torch.cat(parts, 0))
+            # project each neighbour that occurs in a pair through all G^2 weight blocks in one
+            # matmul, then pick block c of neighbour j for every pair and add it to row i
+            rows_i, rows_j = bi * a + ii, bi * a + jj
+            uj, inv = torch.unique(rows_j, return_inverse=True)
+            proj = h.reshape(b * a, hd)[uj] @ lin.weight.reshape(-1, hd).T  # (U, E * G^2), column e * G^2 + c
+            contrib = proj.view(uj.numel(), -1, g * g)[inv, :, cc]  # (P, E) = W_c h_j
+            out = out.index_add(0, rows_i, contrib)
         return torch.relu(out).view(b, a, -1)
 
     def _step_input(self, disp: Tensor, pos: Tensor, h: Tensor, mask: Tensor) -> Tensor:
@@ -322,6 +328,98 @@ def evaluate_loss(model: SocialLSTM, windows: Tensor, batch_size: int = 256) -> 
     return tot / max(cnt, 1)
 
 
+SCHEDULES = ("fixed", "early_stopping")
+#: ``task.lstm`` / ``lstm`` keys of the training schedule (read by :func:`schedule_from_config`)
+SCHEDULE_KEYS = ("schedule", "epochs", "batch_size", "lr", "patience", "min_delta", "lr_factor", "lr_patience", "min_lr")
+
+
+def _int_field(field: str, v, lo: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+        raise ConfigError(f"{field}={v!r} must be an integer >= {lo}")
+    return int(v)
+
+
+def _nonneg(field: str, v) -> float:
+    check_positive(field, v, strict=False)
+    return float(v)
+
+
+def check_schedule(
+    *, epochs, batch_size, lr, patience=None, min_delta=0.0, lr_factor=None, lr_patience=2, min_lr=0.0,
+    prefix: str = "lstm",
+) -> None:
+    """ConfigError (naming ``{prefix}.<field>`` and the allowed values) for a bad training schedule."""
+    _int_field(f"{prefix}.epochs", epochs, 1)
+    _int_field(f"{prefix}.batch_size", batch_size, 1)
+    check_positive(f"{prefix}.lr", lr)
+    if patience is not None:
+        _int_field(f"{prefix}.patience", patience, 1)
+    _nonneg(f"{prefix}.min_delta", min_delta)
+    if float(min_delta) >= 1.0:
+        raise ConfigError(f"{prefix}.min_delta={min_delta!r} is a relative improvement and must be in [0, 1)")
+    if lr_factor is not None:
+        check_positive(f"{prefix}.lr_factor", lr_factor)
+        if float(lr_factor) >= 1.0:
+            raise ConfigError(f"{prefix}.lr_factor={lr_factor!r} must be in (0, 1) or null (constant learning rate)")
+    _int_field(f"{prefix}.lr_patience", lr_patience, 1)
+    _nonneg(f"{prefix}.min_lr", min_lr)
+
+
+def schedule_from_config(c, prefix: str = "lstm") -> dict:
+    """Keyword arguments of :func:`train_lstm` from a config mapping (``task.lstm`` / ``lstm``).
+
+    Keys (all but ``epochs``, ``batch_size``, ``lr`` optional; see :data:`SCHEDULE_KEYS`):
+    ``schedule`` = ``fixed`` (default; the paper: all ``epochs`` at a constant ``lr``, the last
+    weights) or ``early_stopping`` (``epochs`` is the cap; stop after ``patience`` epochs
+    without a new best validation loss, restore the best weights; optional on-plateau decay
+    of the learning rate by ``lr_factor`` after ``lr_patience`` epochs without a new best,
+    down to ``min_lr``). Raises :class:`ConfigError` naming the field for bad values.
+    """
+    get = (lambda k, d=None: c.get(k, d)) if hasattr(c, "get") else (lambda k, d=None: getattr(c, k, d))
+    schedule = get("schedule", "fixed")
+    check_choice(f"{prefix}.schedule", schedule, SCHEDULES)
+    kw = dict(epochs=get("epochs"), batch_size=get("batch_size"), lr=get("lr"))
+    if schedule == "early_stopping":
+        kw.update(
+            patience=get("patience", 10), min_delta=get("min_delta", 0.0), lr_factor=get("lr_factor"),
+            lr_patience=get("lr_patience", 2), min_lr=get("min_lr", 0.0),
+        )
+        if kw["patience"] is None:
+            raise ConfigError(f"{prefix}.patience=None: {prefix}.schedule=early_stopping needs an integer >= 1")
+    else:  # the fixed schedule ignores the early-stopping keys but still rejects bad values
+        check_schedule(
+            epochs=kw["epochs"], batch_size=kw["batch_size"], lr=kw["lr"], patience=get("patience"),
+            min_delta=get("min_delta", 0.0), lr_factor=get("lr_factor"), lr_patience=get("lr_patience", 2),
+            min_lr=get("min_lr", 0.0), prefix=prefix,
+        )
+    check_schedule(**kw, prefix=prefix)
+    kw["epochs"], kw["batch_size"], kw["lr"] = int(kw["epochs"]), int(kw["batch_size"]), float(kw["lr"])
+    return kw
+
+
+def holdout_split(windows: Tensor, groups: Tensor, val_fraction: float, seed: int) -> tuple[Tensor, Tensor]:
+    """Split windows into (train, validation) **by group** (e.g. the episode or file each
+    window was cut from), so that overlapping windows never straddle the split.
+
+    ``round(val_fraction * G)`` of the ``G`` distinct groups (at least 1, at most ``G - 1``),
+    drawn with ``torch.Generator().manual_seed(seed)``, go to validation. ConfigError for a
+    fraction outside (0, 1) or fewer than 2 groups.
+    """
+    check_positive("lstm.val_fraction", val_fraction)
+    if float(val_fraction) >= 1.0:
+        raise ConfigError(f"lstm.val_fraction={val_fraction!r} must be in (0, 1)")
+    groups = torch.as_tensor(groups).reshape(-1)
+    if groups.numel() != windows.shape[0]:
+        raise ValueError(f"groups has {groups.numel()} entries for {windows.shape[0]} windows")
+    ids = torch.unique(groups)
+    if ids.numel() < 2:
+        raise ConfigError(f"early stopping needs >= 2 groups (episodes) to hold some out for validation, got {ids.numel()}")
+    k = min(max(int(round(float(val_fraction) * ids.numel())), 1), ids.numel() - 1)
+    perm = torch.randperm(ids.numel(), generator=torch.Generator().manual_seed(int(seed)))
+    is_val = torch.isin(groups, ids[perm[:k]])
+    return windows[~is_val], windows[is_val]
+
+
 def train_lstm(
     model: SocialLSTM,
     windows: Tensor,
@@ -333,30 +431,50 @@ def train_lstm(
     seed: int = 0,
     progress: bool = False,
     checkpoint: str | Path | None = None,
+    patience: int | None = None,
+    min_delta: float = 0.0,
+    restore_best: bool = True,
+    lr_factor: float | None = None,
+    lr_patience: int = 2,
+    min_lr: float = 0.0,
 ) -> pd.DataFrame:
     """Train with Adam on the L2 (mean squared error) loss of the predicted positions.
+
+    Without ``patience`` (the default) this is the fixed schedule: all ``epochs`` at the
+    constant ``lr``, the final weights are kept (the paper: 50 epochs, batch 8, lr 1e-3).
+    With ``patience`` it is **early stopping** on ``val_windows`` (required): training stops
+    after ``patience`` consecutive epochs without a new best validation loss (a new best
+    must be below ``best * (1 - min_delta)``), or at ``epochs`` (the cap), and the weights of
+    the best validation epoch are restored (``restore_best``). ``lr_factor`` (needs
+    ``val_windows``) multiplies the learning rate by that factor after ``lr_patience``
+    epochs without a new best (not below ``min_lr``; the counter restarts after each cut).
+    The first epochs of an early-stopping run are bit-identical to the fixed schedule with
+    the same seed as long as the learning rate has not been cut (tested).
 
     Args:
         model: the network (trained in place).
         windows: ``(N, obs_len + pred_len, A, 2)`` positions; NaN = agent absent (masked).
             With ``pooling="social"`` the ``A`` agents of a window pool each other.
-        epochs, batch_size, lr: Adam schedule (paper: 50, 8, 1e-3); a batch is
-            ``batch_size`` windows.
+        epochs, batch_size, lr: Adam schedule; a batch is ``batch_size`` windows.
         val_windows: optional validation windows (same layout); ``val_loss`` is NaN without.
         seed: seeds the shuffling (``torch.Generator``).
         progress: tqdm bar over epochs.
-        checkpoint: if given, the final weights are saved there (:func:`save_checkpoint`).
+        checkpoint: if given, the returned weights (best or final) are saved there.
+        patience, min_delta, restore_best, lr_factor, lr_patience, min_lr: see above.
     Returns:
-        DataFrame, one row per epoch: ``epoch, train_loss, val_loss, seconds``.
+        DataFrame, one row per epoch run: ``epoch, train_loss, val_loss, seconds, lr, best``
+        (``train_loss`` = mean over the epoch's batches while training, ``val_loss`` = after
+        the epoch, ``lr`` = the learning rate the epoch ran with, ``best`` = a new best
+        validation loss). ``attrs``: ``best_epoch``, ``best_val_loss``, ``stopped_early``,
+        ``restored_epoch`` (the epoch whose weights the model holds).
     """
-    if not isinstance(epochs, int) or epochs < 1:
-        raise ConfigError(f"lstm.epochs={epochs!r} must be an integer >= 1")
-    if not isinstance(batch_size, int) or batch_size < 1:
-        raise ConfigError(f"lstm.batch_size={batch_size!r} must be an integer >= 1")
-    check_positive("lstm.lr", lr)
+    check_schedule(epochs=epochs, batch_size=batch_size, lr=lr, patience=patience, min_delta=min_delta,
+                   lr_factor=lr_factor, lr_patience=lr_patience, min_lr=min_lr)
     _check_windows(model, windows, "windows")
     if val_windows is not None:
         _check_windows(model, val_windows, "val_windows")
+    elif patience is not None or lr_factor is not None:
+        raise ConfigError("lstm.schedule=early_stopping (patience / lr_factor) needs validation windows (val_windows)")
     from tqdm.auto import tqdm
 
     gen = torch.Generator().manual_seed(int(seed))
@@ -364,6 +482,8 @@ def train_lstm(
     dev, dt = model.param_device, model.param_dtype
     n = windows.shape[0]
     rows = []
+    best_val, best_epoch, best_state = math.inf, 0, None
+    since_best, since_cut, cur_lr, stopped = 0, 0, float(lr), False
     bar = tqdm(range(1, epochs + 1), desc=f"train lstm ({model.pooling})", disable=not progress, leave=False)
     for epoch in bar:
         t0 = time.perf_counter()
@@ -382,10 +502,33 @@ def train_lstm(
             cnt += k
         train_loss = tot / max(cnt, 1)
         val_loss = evaluate_loss(model, val_windows) if val_windows is not None else float("nan")
-        rows.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "seconds": time.perf_counter() - t0})
+        improved = math.isfinite(val_loss) and val_loss < best_val * (1.0 - float(min_delta))
+        if improved:
+            best_val, best_epoch, since_best, since_cut = val_loss, epoch, 0, 0
+            if patience is not None and restore_best:
+                best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        else:
+            since_best += 1
+            since_cut += 1
+        rows.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "seconds": time.perf_counter() - t0,
+                     "lr": cur_lr, "best": bool(improved)})
         bar.set_postfix(train=f"{train_loss:.4f}", val=f"{val_loss:.4f}")
+        if patience is not None and since_best >= int(patience):
+            stopped = epoch < epochs
+            break
+        if lr_factor is not None and since_cut >= int(lr_patience) and cur_lr > float(min_lr):
+            cur_lr = max(cur_lr * float(lr_factor), float(min_lr))
+            for grp in opt.param_groups:
+                grp["lr"] = cur_lr
+            since_cut = 0
+    restored = rows[-1]["epoch"]
+    if best_state is not None and best_epoch != restored:
+        model.load_state_dict(best_state)
+        restored = best_epoch
     model.eval()
     hist = pd.DataFrame(rows)
+    hist.attrs.update(best_epoch=int(best_epoch), best_val_loss=float(best_val) if best_epoch else float("nan"),
+                      stopped_early=bool(stopped), restored_epoch=int(restored))
     if checkpoint is not None:
         save_checkpoint(model, checkpoint, hist)
     return hist

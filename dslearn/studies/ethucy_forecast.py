@@ -30,13 +30,20 @@ Windows follow the Social GAN loader: 20 consecutive steps of one file, every pe
 present at all of them, at least ``task.min_peds`` (2) such pedestrians; test windows
 slide by ``task.test_stride`` (1, the benchmark); training windows by
 ``task.train_stride`` (coarser, for speed; documented in the README). LSTMs train on the
-benchmark's train parts (first ~80 % of each training file in time) and report the loss
-on the validation parts.
+benchmark's train parts (first ~80 % of each training file in time) and are validated on
+the validation parts (the rest of each *training* file; the held-out test scene is never
+seen): with ``task.lstm.schedule=early_stopping`` (default) training stops after
+``task.lstm.patience`` epochs without a new best validation loss (cap ``task.lstm.epochs``)
+and the best-validation weights are restored; ``schedule=fixed`` is the paper's plain
+schedule (all epochs, last weights). The per-epoch losses of every (fold, LSTM) go to
+``learning_curves.csv`` in the run directory (``task.curves_file``); the report turns them
+into ``learning_curves.png`` and a convergence table.
 
 Results: one row per (held-out scene × predictor × metric), ``value`` = the mean over all
 test pedestrian-windows of that scene (the benchmark's number); metrics ``ade``, ``fde``
-(metres), ``count`` (pedestrian-windows), ``train_s`` (training seconds), ``final_val_loss``
-(LSTMs); ``episode`` = fold index.
+(metres), ``count`` (pedestrian-windows), ``train_s`` (training seconds); for the LSTMs
+``epochs_run``, ``best_epoch``, ``best_val_loss``, ``final_val_loss`` / ``final_train_loss``
+(last epoch run), ``batch_size``; ``episode`` = fold index.
 """
 
 from __future__ import annotations
@@ -54,7 +61,7 @@ from torch import Tensor
 from ..data.ethucy import SCENES, fold_scenes, load_scene, split_scene, windows
 from ..errors import ConfigError, check_choice, check_positive
 from ..models.gp import GPMotionModel, OnlineGP
-from ..models.lstm import SocialLSTM, train_lstm
+from ..models.lstm import SCHEDULE_KEYS, SocialLSTM, schedule_from_config, train_lstm
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +69,13 @@ PREDICTORS = ("cv", "lstm", "social_lstm", "gp", "gp_state")
 LABELS = {"cv": "CV", "lstm": "LSTM", "social_lstm": "S-LSTM", "gp": "GP (vel.)", "gp_state": "GP (state)"}
 SCENE_LABELS = {"eth": "ETH", "hotel": "HOTEL", "univ": "UNIV", "zara1": "ZARA1", "zara2": "ZARA2"}
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
+LSTM_MODELS = ("lstm", "social_lstm")
+#: every key ``task.lstm`` may hold (unknown keys are a ConfigError)
+LSTM_KEYS = ("embed", "hidden", "grid", "neighbourhood", "dtype", "social_batch_size") + SCHEDULE_KEYS
+#: the previous default schedule's epoch count (6 epochs, batch 64): the report compares the
+#: validation loss there with the best one reached by early stopping
+OLD_EPOCHS = 6
+CURVE_COLUMNS = ["scene", "fold", "model", "epoch", "train_loss", "val_loss", "lr", "best", "seconds"]
 
 #: Published 8 -> 12 ADE / FDE in metres: Gupta et al., "Social GAN", CVPR 2018, Table 1
 #: (t_pred = 12 rows; "Linear" there is a least-squares linear regressor, not constant velocity).
@@ -262,11 +276,19 @@ def validate(cfg: DictConfig) -> DictConfig:
     if t.get("max_train_windows") is not None:
         _int("task.max_train_windows", t.max_train_windows)
     c = t.lstm
-    for f in ("embed", "hidden", "epochs", "batch_size", "grid"):
+    unknown = sorted(set(c.keys()) - set(LSTM_KEYS))
+    if unknown:
+        raise ConfigError(f"task.lstm has unknown keys {unknown}; allowed: {list(LSTM_KEYS)}")
+    for f in ("embed", "hidden", "grid"):
         _int(f"task.lstm.{f}", c[f])
-    check_positive("task.lstm.lr", c.lr)
+    schedule_from_config(c, prefix="task.lstm")
+    if c.get("social_batch_size") is not None:
+        _int("task.lstm.social_batch_size", c.social_batch_size)
     check_positive("task.lstm.neighbourhood", c.neighbourhood)
     check_choice("task.lstm.dtype", c.dtype, tuple(DTYPES))
+    cf = t.get("curves_file")
+    if cf is not None and (not isinstance(cf, str) or not cf.strip()):
+        raise ConfigError(f"task.curves_file={cf!r} must be a file name / path or null (no learning-curve file)")
     g = t.gp
     _int("task.gp.points", g.points, 2)
     _int("task.gp.fit_points", g.fit_points, 2)
@@ -276,12 +298,28 @@ def validate(cfg: DictConfig) -> DictConfig:
     check_choice("dtype", cfg.get("dtype", "float64"), tuple(DTYPES))
     if t.get("quick"):
         q = OmegaConf.to_container(t, resolve=True)
-        q["lstm"].update(epochs=1)
+        q["lstm"].update(epochs=min(int(c.epochs), 2))
         q["gp"].update(points=min(g.points, 300), fit_points=min(g.fit_points, 100), fit_iters=min(g.fit_iters, 5))
         q["train_stride"] = max(t.train_stride, 10)
         q["max_test_windows"] = min(t.get("max_test_windows") or 40, 40)
         return OmegaConf.create(q)
     return t
+
+
+def _curves_path(name) -> Path | None:
+    """Where ``learning_curves.csv`` goes: an absolute ``task.curves_file`` as is, a relative
+    one inside the Hydra run directory (not written outside Hydra), ``null`` = nowhere."""
+    if name is None:
+        return None
+    p = Path(str(name))
+    if p.is_absolute():
+        return p
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return Path(HydraConfig.get().runtime.output_dir) / p
+    except Exception:  # not under Hydra (e.g. run(cfg) from Python): the curves stay in df.attrs
+        return None
 
 
 # the study ----------------------------------------------------------------------------------
@@ -295,7 +333,7 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     progress = bool(cfg.get("progress", False))
     obs_len, pred_len = int(t.obs_len), int(t.pred_len)
     length = obs_len + pred_len
-    root = t.get("root")
+    root = t.get("data_root")
     t_start = time.perf_counter()
 
     needed = set(t.scenes)
@@ -314,6 +352,8 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     log.info("data loaded in %.1fs", time.perf_counter() - t_start)
 
     rows = []
+    curves: list[pd.DataFrame] = []
+    sched = schedule_from_config(t.lstm, prefix="task.lstm")
 
     def add(model, scene, fold, metric, value):
         rows.append(dict(model=model, consensus="-", node="avg", scene=scene, metric=metric, value=float(value), episode=fold))
@@ -343,12 +383,19 @@ def run(cfg: DictConfig) -> pd.DataFrame:
                 )
                 tr_data = trw if social else _per_agent(trw).unsqueeze(2)
                 va_data = vaw if social else _per_agent(vaw).unsqueeze(2)
-                hist = train_lstm(
-                    model, tr_data, epochs=int(c.epochs), batch_size=int(c.batch_size), lr=float(c.lr),
-                    val_windows=va_data, seed=seed + fold, progress=progress,
-                )
-                extra["final_val_loss"] = hist.val_loss.iloc[-1]
+                kw = dict(sched)
+                if social and c.get("social_batch_size") is not None:
+                    kw["batch_size"] = int(c.social_batch_size)
+                hist = train_lstm(model, tr_data, **kw, val_windows=va_data, seed=seed + fold, progress=progress)
+                curves.append(hist.assign(scene=test_scene, fold=fold, model=pred_name))
+                extra["epochs_run"] = len(hist)
+                extra["best_epoch"] = hist.attrs["best_epoch"]
+                extra["best_val_loss"] = hist.attrs["best_val_loss"]
+                extra["final_val_loss"] = hist.val_loss.iloc[-1]  # the last epoch run (not the restored one)
                 extra["final_train_loss"] = hist.train_loss.iloc[-1]
+                extra["batch_size"] = kw["batch_size"]
+                log.info("%s %s: %d epochs, best validation loss %.5f at epoch %d", test_scene, pred_name, len(hist),
+                         hist.attrs["best_val_loss"], hist.attrs["best_epoch"])
                 if social:
                     pw = lstm_predict(model, tw[:, :obs_len])
                     pred = pw.permute(0, 2, 1, 3)[torch.isfinite(tw).all(-1).all(1)]
@@ -384,6 +431,14 @@ def run(cfg: DictConfig) -> pd.DataFrame:
                 add(pred_name, test_scene, fold, k, v)
             log.info("%s %s: ADE %.3f FDE %.3f (%.1fs)", test_scene, pred_name, float(ade.mean()), float(fde.mean()), secs)
     df = pd.DataFrame(rows)
+    lc = pd.concat(curves, ignore_index=True)[CURVE_COLUMNS] if curves else pd.DataFrame(columns=CURVE_COLUMNS)
+    df.attrs["learning_curves"] = lc
+    path = _curves_path(t.get("curves_file"))
+    if path is not None and curves:
+        from ..io import atomic_write_csv
+
+        atomic_write_csv(lc, path)
+        log.info("learning curves: %s", path)
     df.attrs["wall_s"] = time.perf_counter() - t_start
     log.info("ethucy_forecast finished in %.1fs", df.attrs["wall_s"])
     return df
@@ -426,9 +481,38 @@ def published_table() -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def load_curves(out_dir: Path) -> pd.DataFrame | None:
+    """``learning_curves.csv`` of a run directory, or of every run below a sweep directory
+    (column ``run`` = its folder relative to ``out_dir``); ``None`` if there is none."""
+    out_dir = Path(out_dir)
+    files = [out_dir / "learning_curves.csv"] if (out_dir / "learning_curves.csv").is_file() else sorted(out_dir.rglob("learning_curves.csv"))
+    if not files:
+        return None
+    frames = [pd.read_csv(f).assign(run=str(f.parent.relative_to(out_dir)) if f.parent != out_dir else ".") for f in files]
+    return pd.concat(frames, ignore_index=True)
+
+
+def convergence_table(curves: pd.DataFrame, ref_epoch: int = OLD_EPOCHS) -> pd.DataFrame:
+    """Per (run, scene, model): epochs run, best epoch, validation loss at ``ref_epoch`` (the old
+    fixed schedule's last epoch), best validation loss, and how far above the best the former is."""
+    rows = []
+    for (run, fold, scene, model), g in curves.groupby(["run", "fold", "scene", "model"], sort=True):
+        g = g.sort_values("epoch")
+        i_best = int(g.val_loss.to_numpy().argmin())
+        ref = g.loc[g.epoch == ref_epoch, "val_loss"]
+        best = float(g.val_loss.iloc[i_best])
+        v_ref = float(ref.iloc[0]) if len(ref) else float("nan")
+        rows.append(dict(run=run, fold=int(fold), scene=scene, model=model, epochs_run=int(g.epoch.max()),
+                         best_epoch=int(g.epoch.iloc[i_best]), val_ref=v_ref, val_best=best,
+                         excess_pct=100.0 * (v_ref - best) / best, final_lr=float(g.lr.iloc[-1])))
+    return pd.DataFrame(rows)
+
+
 def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     """Five-scene ADE/FDE table (``ethucy_forecast.md`` / ``.csv``), the published
-    Social GAN figures beside it, and a bar chart (``ethucy_forecast.png``)."""
+    Social GAN figures beside it, and a bar chart (``ethucy_forecast.png``); with the run's
+    ``learning_curves.csv`` also the convergence table (``ethucy_forecast_convergence.csv``)
+    and the learning curves (``learning_curves.png``)."""
     from ..io import atomic_write_csv, atomic_write_text
     from ..report import markdown
 
@@ -452,6 +536,30 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
         "'Linear' there is a least-squares linear regressor over the 8 observed points, not the "
         "constant-velocity model above. See experiments/ethucy_forecast/README.md.",
     ]
+    curves = load_curves(out_dir)
+    if curves is not None and not curves.empty:
+        conv = convergence_table(curves)
+        atomic_write_csv(conv, out_dir / "ethucy_forecast_convergence.csv")
+        def fmt(f):
+            return lambda v: f.format(v) if np.isfinite(v) else "-"
+
+        show = conv.assign(
+            scene=conv.scene.map(lambda v: SCENE_LABELS.get(v, v)), model=conv.model.map(lambda v: LABELS.get(v, v)),
+            val_ref=conv.val_ref.map(fmt("{:.4f}")), val_best=conv.val_best.map(fmt("{:.4f}")),
+            excess_pct=conv.excess_pct.map(fmt("{:+.1f} %")), final_lr=conv.final_lr.map(fmt("{:.2g}")),
+        ).rename(columns={"epochs_run": "epochs run", "best_epoch": "best epoch", "val_ref": f"val loss @ epoch {OLD_EPOCHS}",
+                          "val_best": "best val loss", "excess_pct": f"epoch {OLD_EPOCHS} above best", "final_lr": "last lr"})
+        if show.run.nunique() == 1:
+            show = show.drop(columns="run")
+        lines += ["", "### LSTM training (validation = the training files' benchmark val parts)", "",
+                  markdown(show.drop(columns="fold")), "",
+                  f"Epoch {OLD_EPOCHS} of this run = where the previous fixed schedule (6 epochs, batch 64) "
+                  "stopped; the first epochs of an early-stopping run equal a fixed run with the same batch "
+                  "size and seed while the learning rate is unchanged (not for a different batch size)."]
+        try:
+            _plot_curves(curves, out_dir / "learning_curves.png")
+        except Exception as e:  # figures never break the tables
+            log.warning("learning-curve figure failed: %s", e)
     text = "\n".join(lines)
     atomic_write_text(out_dir / "ethucy_forecast.md", text + "\n")
     try:
@@ -459,6 +567,43 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     except Exception as e:  # figures never break the tables
         log.warning("ethucy_forecast figure failed: %s", e)
     return text
+
+
+def _plot_curves(curves: pd.DataFrame, path: Path) -> None:
+    """Train (dashed) and validation (solid) loss per epoch, one panel per fold, both LSTMs;
+    a dot marks the best validation epoch (the weights kept), a grey line the old epoch 6."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = curves[curves.run == curves.run.iloc[0]]
+    folds = c.drop_duplicates("fold").sort_values("fold")
+    fig, axes = plt.subplots(1, len(folds), figsize=(3.3 * len(folds), 3.2), squeeze=False, sharey=False)
+    for ax, (_, f) in zip(axes[0], folds.iterrows()):
+        for j, m in enumerate(LSTM_MODELS):
+            g = c[(c.fold == f.fold) & (c.model == m)].sort_values("epoch")
+            if g.empty:
+                continue
+            col = f"C{j}"
+            ax.plot(g.epoch, g.val_loss, "-", color=col, label=f"{LABELS[m]} val")
+            ax.plot(g.epoch, g.train_loss, "--", color=col, alpha=0.7, label=f"{LABELS[m]} train")
+            b = g.loc[g.val_loss.idxmin()]
+            ax.plot([b.epoch], [b.val_loss], "o", color=col)
+        later = c[(c.fold == f.fold) & (c.epoch >= 2)][["train_loss", "val_loss"]].to_numpy()
+        if later.size and np.isfinite(later).any():  # the first epoch's loss would squash the rest
+            lo, hi = np.nanmin(later), np.nanmax(later)
+            ax.set_ylim(0.95 * lo, 1.05 * hi)
+        ax.axvline(OLD_EPOCHS, color="0.6", lw=0.8)
+        ax.set_title(f"test {SCENE_LABELS.get(f.scene, f.scene)}")
+        ax.set_xlabel("epoch")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("loss (MSE per coordinate, m$^2$)")
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _plot(tab: pd.DataFrame, path: Path) -> None:

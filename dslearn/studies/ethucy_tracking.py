@@ -245,9 +245,16 @@ def validate(cfg: DictConfig) -> None:
     for v in as_list("task.sfm.grid.alpha", s.grid.alpha, none_as_empty=True) or [None]:
         check_positive("task.sfm.grid.alpha", v, strict=False)
     lstm = t.lstm
-    for k in ("embed", "hidden", "obs_len", "pred_len", "epochs", "batch_size"):
+    for k in ("embed", "hidden", "obs_len", "pred_len"):
         _int(f"task.lstm.{k}", lstm[k], 1)
-    check_positive("task.lstm.lr", lstm.lr)
+    from ..models.lstm import schedule_from_config
+
+    sched = schedule_from_config(lstm, prefix="task.lstm")
+    if "patience" in sched:
+        vf = lstm.get("val_fraction", 0.2)
+        check_positive("task.lstm.val_fraction", vf)
+        if float(vf) >= 1.0:
+            raise ConfigError(f"task.lstm.val_fraction={vf!r} must be in (0, 1)")
     check_choice("task.lstm.pooling", lstm.pooling, ("none", "social"))
     if lstm.obs_len + lstm.pred_len > t.steps + 1:
         raise ConfigError(
@@ -488,31 +495,36 @@ def _lstm_cfg(t) -> dict:
     return {k: t.lstm[k] for k in keys if k in t.lstm}
 
 
-def lstm_windows(fused: Tensor, obs_len: int, pred_len: int) -> Tensor:
-    """Sliding windows of fused positions: ``(B, K+1, 4A) -> (N, obs_len + pred_len, A, 2)``."""
+def lstm_windows(fused: Tensor, obs_len: int, pred_len: int) -> tuple[Tensor, Tensor]:
+    """Sliding windows of fused positions: ``(B, K+1, 4A) -> (N, obs_len + pred_len, A, 2)``, and
+    the episode each window was cut from, ``(N,)`` (a validation split holds out whole episodes)."""
     pos = agents(fused)[..., POS]
     w = obs_len + pred_len
     k1 = pos.shape[1]
-    return torch.cat([pos[:, s : s + w] for s in range(0, k1 - w + 1)], 0)
+    starts = range(0, k1 - w + 1)
+    groups = torch.arange(pos.shape[0]).repeat(len(starts))
+    return torch.cat([pos[:, s : s + w] for s in starts], 0), groups
 
 
-def train_lstm_model(cfg: DictConfig, data: Data, windows: Tensor, seed: int, dtype, device):
-    """A fresh Social-LSTM trained on ``windows``; returns ``(model, loss curve)``."""
-    from ..models.lstm import SocialLSTM, train_lstm
+def train_lstm_model(cfg: DictConfig, data: Data, windows: tuple[Tensor, Tensor], seed: int, dtype, device):
+    """A fresh Social-LSTM trained on ``windows`` (from :func:`lstm_windows`) with the schedule of
+    ``task.lstm`` (the paper's fixed one, or early stopping on held-out episodes); returns
+    ``(model, loss curve)``; with early stopping the curve's ``attrs["restored_epoch"]`` is the
+    epoch whose weights were kept."""
+    from ..models.lstm import SocialLSTM, holdout_split, schedule_from_config, train_lstm
 
     t = cfg.task
     kw = _lstm_cfg(t)
+    win, groups = windows
+    sched = schedule_from_config(t.lstm, prefix="task.lstm")
+    val = None
+    if "patience" in sched:
+        win, val = holdout_split(win, groups, float(t.lstm.get("val_fraction", 0.2)), seed)
+        val = val.to(device, dtype)
     torch.manual_seed(seed)
     model = SocialLSTM(data.num_agents, dt=data.ctx.dt, dtype=dtype, device=device, **kw)
-    curve = train_lstm(
-        model,
-        windows.to(device, dtype),
-        epochs=int(t.lstm.epochs),
-        batch_size=int(t.lstm.batch_size),
-        lr=float(t.lstm.lr),
-        seed=int(seed),
-        progress=bool(cfg.get("progress", False)),
-    )
+    curve = train_lstm(model, win.to(device, dtype), **sched, val_windows=val, seed=int(seed),
+                       progress=bool(cfg.get("progress", False)))
     return model, curve
 
 
@@ -631,7 +643,7 @@ def protocol_tables(cfg: DictConfig, data: Data, seed: int, dtype, device) -> pd
         lstm, curve = train_lstm_model(cfg, data, win, seed, dtype, device)
         add("lstm", "cm", _pred_rows(lstm, data, False, **base))
         add("lstm", "cm", trajectory_rows(lstm, data, False, n_plot, **base))
-        last = curve.iloc[-1]
+        last = curve.iloc[int(curve.attrs.get("restored_epoch", len(curve))) - 1]
         add("lstm", "cm", pd.DataFrame({"node": ["avg"], "node_kind": ["param"], "episode": [0], "metric": ["lstm_train_loss"], "value": [float(last["train_loss"])], **{kk: [vv] for kk, vv in base.items()}}))
         times["lstm"] = time.perf_counter() - t0
     log.info("%s: component times %s", data.label, {k: round(v, 1) for k, v in times.items()})
