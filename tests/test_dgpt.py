@@ -9,13 +9,15 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from dslearn.dgpt.aggregation import aggregate, aggregate_grbcm, entropy_weights, ucb_bound
+from dslearn.dgpt import hyperopt as ho
+from dslearn.dgpt.aggregation import (aggregate, aggregate_grbcm, entropy_weights, ucb_bound,
+                                      ucb_bound_grbcm, ucb_gamma)
 from dslearn.dgpt.experts import (Hypers, closed_form_gp, expert_log_marginal_likelihood,
                                   factorised_log_marginal_likelihood, predict_latent,
                                   predict_latent_slice)
 from dslearn.dgpt.scenarios import (generate_s1, generate_s2, generate_s3, s3_turn_rates,
                                     singer_sigma)
-from dslearn.dgpt.tracker import HyperConfig, _window, track
+from dslearn.dgpt.tracker import HyperConfig, _window, keyed_uniform, track
 from dslearn.errors import ConfigError
 from dslearn.studies import liu_dgpt
 
@@ -157,14 +159,65 @@ def test_entropy_weights_zero_at_prior():
     torch.testing.assert_close(b, t(0.0, 0.5 * math.log(4.0)), **TOL)
 
 
-def test_ucb_bound_closed_form():
-    var, beta, delta = t(0.5, 2.0), t(0.3, 0.7), 0.1
-    gamma = 2 * math.log(2 / delta)  # sum_i exp(-gamma/2) = delta
-    expect = (0.3 * math.sqrt(gamma) / math.sqrt(0.5) + 0.7 * math.sqrt(gamma) / math.sqrt(2.0)) / (
-        0.3 / 0.5 + 0.7 / 2.0)
-    got = ucb_bound(var, beta, torch.ones(2, dtype=torch.bool), t(8.0), delta)
-    torch.testing.assert_close(got, t(expect), **TOL)
-    assert 2 * math.exp(-gamma / 2) == pytest.approx(delta)
+def test_ucb_gamma_makes_the_failure_probabilities_sum_to_delta():
+    # Theorem 1 takes gamma_i with sum_i exp(-gamma_i / 2) = delta (union bound over M experts)
+    for delta in (0.05, 0.1, 0.3):
+        for m in range(1, 9):
+            g = ucb_gamma(torch.tensor(m), delta).item()
+            assert m * math.exp(-g / 2) == pytest.approx(delta, rel=1e-12)
+
+
+def test_ucb_bound_is_the_worst_case_of_theorem_1():
+    """Eq. 24 from the theorem's argument: if |f - mu_i| <= gamma^1/2 sigma_i for every expert
+    (Lemma 1 events), the gPoE mean mu = sum_i w_i mu_i (w_i = beta_i sigma_i^-2 / sum_j ...)
+    satisfies |f - mu| <= sum_i w_i gamma^1/2 sigma_i, with equality when every error is at its
+    maximum with the same sign. Checked against the gPoE mean computed by aggregate()."""
+    g = torch.Generator().manual_seed(5)
+    delta, pv = 0.05, torch.tensor(50.0, dtype=D)
+    for m in (1, 2, 5):
+        var = 0.5 + 10 * torch.rand(m, generator=g, dtype=D)
+        mask = torch.ones(m, dtype=torch.bool)
+        gam = 2 * math.log(m / delta)
+        f = 3.7
+        # all errors at the Lemma 1 maximum, same sign: the bound is attained
+        mu = f - math.sqrt(gam) * var.sqrt()
+        agg_m, _, beta = aggregate(mu, var, mask, pv, "gpoe")
+        bound = ucb_bound(var, beta, mask, pv, delta)
+        torch.testing.assert_close((f - agg_m).abs(), bound, rtol=1e-12, atol=1e-12)
+        # any errors inside the Lemma 1 intervals: the bound holds
+        for _ in range(20):
+            u = 2 * torch.rand(m, generator=g, dtype=D) - 1
+            mu = f - u * math.sqrt(gam) * var.sqrt()
+            agg_m, _, beta = aggregate(mu, var, mask, pv, "gpoe")
+            assert (f - agg_m).abs() <= ucb_bound(var, beta, mask, pv, delta) + 1e-12
+    # one expert: Lemma 1 itself, sqrt(2 log(1/delta)) sigma
+    b1 = ucb_bound(t(2.0), t(0.4), torch.ones(1, dtype=torch.bool), pv, delta)
+    assert b1.item() == pytest.approx(math.sqrt(2 * math.log(1 / delta)) * math.sqrt(2.0), rel=1e-12)
+
+
+def test_grbcm_bound_worst_case_and_continuity():
+    """grBCM mean = sum_i w_i mu_{+i} + w_c mu_c (sum w = 1): errors at their Lemma 1 maxima
+    with the signs of the weights attain the bound; with all beta = 0 it is the communication
+    expert's gamma^1/2 sigma_c (no jump to the prior's bound)."""
+    g = torch.Generator().manual_seed(6)
+    delta = 0.05
+    for m in (1, 3, 6):
+        vc = torch.tensor(9.0, dtype=D)
+        var = vc * (0.02 + 0.9 * torch.rand(m, generator=g, dtype=D))  # sigma_{+i} <= sigma_c
+        mask = torch.ones(m, dtype=torch.bool)
+        gam = 2 * math.log((m + 1) / delta)
+        f = -1.3
+        _, _, beta = aggregate_grbcm(torch.zeros(m, dtype=D), var, mask, torch.tensor(0.0, dtype=D), vc)
+        wc_sign = 1.0 if 1 - beta.sum().item() >= 0 else -1.0
+        mu = f - math.sqrt(gam) * var.sqrt()          # w_i >= 0: all errors positive
+        mc = f - wc_sign * math.sqrt(gam) * vc.sqrt()
+        agg_m, _, beta = aggregate_grbcm(mu, var, mask, mc, vc)
+        bound = ucb_bound_grbcm(var, beta, mask, vc, delta)
+        torch.testing.assert_close((f - agg_m).abs(), bound, rtol=1e-12, atol=1e-12)
+    b0 = ucb_bound_grbcm(t(1.0, 2.0), t(0.0, 0.0), torch.ones(2, dtype=torch.bool), t(4.0), delta)
+    assert b0.item() == pytest.approx(math.sqrt(2 * math.log(3 / delta)) * 2.0, rel=1e-12)
+    b_eps = ucb_bound_grbcm(t(1.0, 2.0), t(1e-14, 1e-14), torch.ones(2, dtype=torch.bool), t(4.0), delta)
+    assert b_eps.item() == pytest.approx(b0.item(), rel=1e-10)
 
 
 # ------------------------------------------------------------------ GPs and likelihoods
@@ -363,7 +416,9 @@ def test_tiny_end_to_end(gp_input, tmp_path):
 @pytest.mark.parametrize("field,value", [
     ("gp_input", "spatial"), ("aggregations", ["poe", "moe"]), ("aggregations", []),
     ("window.s1", 0), ("noises", [1.0, -2.0]), ("ucb_delta", 1.5), ("mc_runs", 0),
-    ("hyper.optimizer", "newton"), ("scenarios", ["s4"]),
+    ("hyper.optimizer", "lbfgs"), ("scenarios", ["s4"]), ("hyper.tol", 0.0), ("hyper.max_iters", 0),
+    ("hyper.gap_check", "yes"), ("hyper.init_noise", 1e-6), ("hyper.max_lengthscale", 5.0),
+    ("hyper.maxiter", 5),
 ])
 def test_bad_input_raises_config_error(field, value):
     with pytest.raises(ConfigError, match=field.split(".")[0]):
@@ -431,3 +486,190 @@ def test_tracker_gp_alone_end_to_end():
     a = df[(df["metric"] == "nrmse_x_updated")]["value"].to_numpy()
     b = full[(full["metric"] == "nrmse_x_updated") & (full["model"] == "standard_gp")]["value"].to_numpy()
     torch.testing.assert_close(torch.tensor(a), torch.tensor(b), rtol=1e-9, atol=1e-12)
+
+
+# ------------------------------------------------------------------ hyperparameter learning (hyperopt)
+def _theta(seed=0, pb=(2, 3), d=3):
+    g = torch.Generator().manual_seed(seed)
+    base = torch.tensor([math.log(30.0)] + [0.5, 1.0, 0.2][:d] + [math.log(0.4)], dtype=D)
+    return base + 0.3 * torch.randn(*pb, d + 2, generator=g, dtype=D)
+
+
+def test_closed_form_lml_equals_gpytorch_and_autograd_derivatives():
+    x, z, mask = _data(seed=11, shape=(2, 3, 4), w=6, d=3)
+    th = _theta()
+    f, g, h = ho.log_marginal_likelihood(th, x, z, mask, order=2)
+    ref = expert_log_marginal_likelihood(ho.to_hypers(th), x, z, mask).sum(-1)  # GPyTorch
+    torch.testing.assert_close(f, ref, rtol=1e-9, atol=1e-9)
+    ga = torch.autograd.functional.jacobian(lambda t_: ho.log_marginal_likelihood(t_, x, z, mask).sum(), th)
+    torch.testing.assert_close(g, ga, rtol=1e-9, atol=1e-9)
+    for i in range(2):
+        for j in range(3):
+            ha = torch.autograd.functional.hessian(
+                lambda t_: ho.log_marginal_likelihood(t_, x[i, j], z[i, j], mask[i, j]), th[i, j])
+            torch.testing.assert_close(h[i, j], ha, rtol=1e-9, atol=1e-9)
+
+
+def test_posterior_equals_gpytorch_prediction():
+    x, z, mask = _data(seed=12, shape=(2, 3, 4), w=6, d=3)
+    th = _theta(1)
+    xs = torch.randn(2, 3, 4, 2, 3, generator=torch.Generator().manual_seed(2), dtype=D)
+    mu, var = ho.Posterior(th, x, z, mask)(xs)
+    mu0, var0 = predict_latent(ho.to_hypers(th), x, z, mask, xs)
+    torch.testing.assert_close((mu, var), (mu0, var0), rtol=1e-9, atol=1e-9)
+
+
+def test_elementwise_adam_equals_torch_adam_per_problem():
+    """Each problem follows torch.optim.Adam run on it alone, whatever the others do."""
+    g = torch.Generator().manual_seed(3)
+    target = torch.randn(4, 3, generator=g, dtype=D)
+    th = torch.zeros(4, 3, dtype=D)
+    opt = ho.ElementwiseAdam(th, lr=0.1)
+    steps = [torch.tensor(i) for i in ([0, 1, 2, 3], [1, 3], [0, 1, 2, 3], [2], [0, 2, 3], [3])]
+    for idx in steps:  # different problems step at different times, different numbers of steps
+        grad = 2 * (th[idx] - target[idx]) * (1 + th[idx] ** 2)
+        th[idx] = opt.step(th[idx], grad, idx)
+    for p_ in range(4):
+        w = torch.zeros(3, dtype=D, requires_grad=True)
+        ref = torch.optim.Adam([w], lr=0.1)
+        for idx in steps:
+            if p_ in idx.tolist():
+                ref.zero_grad()
+                ((w - target[p_]) ** 2 + (w - target[p_]) ** 2 * w ** 2 * 0 + 0).sum()  # noqa: B018
+                w.grad = (2 * (w - target[p_]) * (1 + w ** 2)).detach()
+                ref.step()
+        torch.testing.assert_close(th[p_], w.detach(), rtol=1e-12, atol=1e-12)
+
+
+def _constant_input_problem(z):
+    """All inputs equal: K = s 11^T + sigma^2 I; closed-form ML: sigma^2 = sample variance
+    (n - 1 dof), s = mean^2 - sigma^2 / n."""
+    n = z.shape[-1]
+    x = torch.zeros(1, 1, n, 1, dtype=D)
+    mask = torch.ones(1, 1, n, dtype=torch.bool)
+    zb = z.reshape(1, 1, n)
+    return (lambda t_, i_: ho.log_marginal_likelihood(t_, x.expand(len(i_), 1, n, 1), zb.expand(len(i_), 1, n),
+                                                      mask.expand(len(i_), 1, n), order=2))
+
+
+def test_newton_solves_the_maximum_likelihood_in_closed_form():
+    z = torch.tensor([10.3, 12.1, 9.4, 11.8, 10.9, 8.7, 12.6], dtype=D)
+    n = z.numel()
+    s2 = z.var(unbiased=True).item()
+    s_ml = z.mean().item() ** 2 - s2 / n
+    box = ho.bounds(1, 1e-4)
+    th0 = ho.init_theta((1,), 1, 1e5, [10.0], 1.0)
+    th, info = ho.newton_maximise(_constant_input_problem(z), th0, torch.tensor([True]), 1e-9, 100, box=box)
+    v = ho.values(th)[0]
+    assert bool(info.converged[0]) and info.grad[0] <= 1e-9
+    assert v[-1].item() == pytest.approx(s2, rel=1e-8)
+    assert v[0].item() == pytest.approx(s_ml, rel=1e-8)
+    assert v[1].item() == pytest.approx(10.0, rel=1e-12)  # no information about the length scale
+
+
+def test_newton_stops_at_the_box_when_the_supremum_is_outside():
+    z = torch.tensor([0.3, -1.1, 0.4, -0.8, 1.2, -0.1, 0.05], dtype=D)  # mean^2 < s^2/n: ML s <= 0
+    assert z.mean().item() ** 2 < z.var(unbiased=True).item() / z.numel()
+    box = ho.bounds(1, 1e-4)
+    th, info = ho.newton_maximise(_constant_input_problem(z), ho.init_theta((1,), 1, 1e5, [10.0], 1.0),
+                                  torch.tensor([True]), 1e-9, 200, box=box)
+    assert th[0, 0].item() == box[0][0].item()  # the outputscale ends exactly at its lower bound
+    assert bool(info.converged[0])
+    # s -> 0: K = sigma^2 I and the zero-mean ML noise variance is mean(z^2)
+    assert ho.values(th)[0, -1].item() == pytest.approx((z ** 2).mean().item(), rel=1e-5)
+
+
+def test_keyed_uniform_is_batch_free_and_uniform():
+    keys = torch.tensor([5, 2 ** 40 + 7, 123456789], dtype=torch.long)
+    f1 = torch.arange(50_000, dtype=torch.long)
+    u = keyed_uniform(keys[:, None], f1[None, :])
+    u1 = keyed_uniform(keys[1:2, None], f1[None, 1000:2000])
+    torch.testing.assert_close(u[1:2, 1000:2000], u1, rtol=0, atol=0)
+    assert ((u >= 0) & (u < 1)).all()
+    assert abs(u.mean().item() - 0.5) < 0.005 and abs(u.var().item() - 1 / 12) < 0.002
+    assert (u[0] != u[1]).float().mean() > 0.999
+
+
+def _episodes(n_runs=3, steps=30, scenarios=("s1", "s3"), noises=(2.0,), opt="adam", **hyper):
+    base = OmegaConf.load("conf/task/liu_dgpt.yaml")
+    base.mc_runs, base.num_steps = n_runs, steps
+    base.scenarios, base.noises = list(scenarios), list(noises)
+    base.hyper.optimizer = opt
+    for k, v in hyper.items():
+        base.hyper[k] = v
+    p = liu_dgpt.validate(OmegaConf.create({"seed": 1, "task": base}))
+    return p, liu_dgpt.episodes(p, 1)
+
+
+_FIELDS = ("upd_mean", "upd_var", "pred_mean", "pred_var", "upd_bound", "pred_bound", "hyper_e",
+           "hyper_c", "iters_e", "iters_c")
+
+
+@pytest.mark.parametrize("opt,gp_input,tol", [("adam", "temporal", 1e-9), ("adam", "spatiotemporal", 1e-9),
+                                              ("newton", "temporal", 1e-6)])
+def test_episode_alone_equals_episode_in_any_batch(opt, gp_input, tol):
+    """Monte Carlo runs are independent: same result alone, in a batch of 2 or of 6 (mixed
+    scenarios, i.e. other window lengths / paddings, and other runs' first detections).
+
+    The fixed Adam schedule is a smooth map of the data: batches differ only by the round-off
+    of differently padded tensors (1e-9). Newton-to-tolerance has discrete per-problem decisions
+    (stop / accept) that round-off can flip, moving a result by up to one final Newton step
+    (measured up to ~1e-7 relative): 1e-6 there (README)."""
+    p, (truth, meas, avail, window, ek, keys) = _episodes(opt=opt)
+    kw = dict(gp_input=gp_input, aggregations=p["aggregations"], hyper=p["hyper"])
+
+    def run(sel):
+        sel = torch.tensor(sel)
+        return track(meas[sel], avail[sel], window[sel], episode_keys=ek[sel], **kw)
+
+    full = run(list(range(6)))
+    for i, other in ((1, [1]), (4, [4, 0]), (3, [2, 3])):
+        part = run(other)
+        j = other.index(i)
+        for f in _FIELDS:
+            a, b = getattr(full, f)[i].double(), getattr(part, f)[j].double()
+            if f.startswith("iters") and opt == "newton":
+                continue  # where a decision flips, the iteration count differs (not the result)
+            torch.testing.assert_close(a, b, rtol=tol, atol=tol, msg=f"{f} episode {i} vs batch {other}")
+
+
+def test_run_does_not_depend_on_batch_runs_mc_runs_or_the_other_cells():
+    cfg = _cfg(num_steps=20)
+    cfg.task.mc_runs, cfg.task.batch_runs = 3, 3
+    a = liu_dgpt.run(cfg)
+    cfg.task.batch_runs = 1
+    b = liu_dgpt.run(cfg)
+    key = ["scenario", "noise", "episode", "model", "consensus", "metric", "step"]
+
+    def vals(df, **sel):
+        for k_, v in sel.items():
+            df = df[df[k_] == v]
+        return df.sort_values(key)["value"].to_numpy()
+
+    torch.testing.assert_close(torch.tensor(vals(a)), torch.tensor(vals(b)), rtol=1e-9, atol=1e-9)
+    cfg.task.mc_runs, cfg.task.batch_runs = 2, 50
+    cfg.task.scenarios, cfg.task.noises = ["s3"], [4.0]  # one cell, fewer runs
+    c = liu_dgpt.run(cfg)
+    ref = a[(a["scenario"] == "s3") & (a["noise"] == 4.0) & (a["episode"] < 2) & (a["step"] < 0)]
+    torch.testing.assert_close(torch.tensor(vals(c[c["step"] < 0])), torch.tensor(vals(ref)),
+                               rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("opt", ["adam", "newton"])
+def test_gap_check_records_distance_below_the_maximum(opt):
+    p, (truth, meas, avail, window, ek, keys) = _episodes(n_runs=2, steps=25, opt=opt, gap_check=True)
+    res = track(meas, avail, window, gp_input="temporal", aggregations=["poe", "rbcm"],
+                hyper=p["hyper"], episode_keys=ek)
+    lw = res.learning[:, None, None, :].expand_as(res.gap_e)
+    gap = res.gap_e[lw]
+    assert torch.isfinite(gap).all() and (gap >= -1e-8).all()  # the maximum is never below
+    assert torch.isnan(res.gap_e[~lw]).all()
+    nz = res.noise_mle_e[lw]
+    assert (nz >= p["hyper"].min_noise * (1 - 1e-12)).all() and (nz <= p["hyper"].max_noise).all()
+    if opt == "newton":  # its own solution: the reference solve starts there and barely moves
+        conv = res.grad_e[lw] <= p["hyper"].tol
+        assert conv.float().mean() > 0.9 and gap[conv].median() < 1e-6
+    df = liu_dgpt.run(_cfg(**{"hyper.optimizer": opt, "hyper.gap_check": True}))
+    for met in ("ml_gap_median", "ml_gap_max", "noise_var_mle", "hyper_iters", "hyper_noise_var"):
+        sub = df[df["metric"] == met]["value"]
+        assert len(sub) and sub.notna().all()

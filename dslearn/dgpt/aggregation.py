@@ -149,3 +149,33 @@ def ucb_bound(var: Tensor, beta: Tensor, mask: Tensor, prior_var, delta: float) 
     num = g.sqrt() * (b / sd).sum(-1)
     prior_bound = math.sqrt(2 * math.log(1 / delta)) * pv.sqrt()
     return torch.where(den > 0, num / den.clamp_min(1e-300), prior_bound)
+
+
+def ucb_bound_grbcm(var: Tensor, beta: Tensor, mask: Tensor, comm_var: Tensor, delta: float) -> Tensor:
+    r"""Error bound for grBCM's mean by Theorem 1's argument, including the communication expert.
+
+    grBCM's mean is :math:`\mu = \sum_i \omega_i\mu_{+i} + \omega_c\mu_c` with
+    :math:`\omega_i = \beta_i\sigma^2/\sigma_{+i}^2`, :math:`\omega_c = (1 - \sum_i\beta_i)\sigma^2/\sigma_c^2`
+    (:math:`\sum\omega = 1`; :math:`\omega_c < 0` when :math:`\sum_i\beta_i > 1`), so when Lemma 1
+    holds for all :math:`M + 1` GPs (probability :math:`\ge 1 - \delta` by the union bound with
+    :math:`\gamma = 2\log((M + 1)/\delta)`),
+
+    .. math:: |f - \mu| \le \gamma^{1/2}\Big(\sum_i |\omega_i|\sigma_{+i} + |\omega_c|\sigma_c\Big).
+
+    Continuous in the weights: with every :math:`\beta_i = 0` (grBCM = the communication expert)
+    it is :math:`\gamma^{1/2}\sigma_c`. (Eq. 24 applied to the augmented experts alone drops
+    :math:`\omega_c` and falls back to the prior when all :math:`\beta_i = 0`.)
+
+    Args:
+        var, beta, mask: (..., M) augmented experts' variances, the weights returned by
+            :func:`aggregate_grbcm`, which experts take part; comm_var: (...); delta in (0, 1).
+    """
+    cv = comm_var.clamp_min(1e-12)
+    v = var.clamp_min(1e-12)
+    b = torch.where(mask, beta, torch.zeros_like(beta))
+    prec = torch.maximum((b / v).sum(-1) + (1.0 - b.sum(-1)) / cv, 1.0 / cv)
+    agg = 1.0 / prec
+    w_i = b * agg.unsqueeze(-1) / v
+    w_c = (1.0 - b.sum(-1)) * agg / cv
+    g = ucb_gamma(mask.sum(-1) + 1, delta).to(var.dtype)
+    return g.sqrt() * ((w_i.abs() * v.sqrt()).sum(-1) + w_c.abs() * cv.sqrt())

@@ -151,6 +151,20 @@ def factorised_log_marginal_likelihood(hypers: Hypers, x: Tensor, z: Tensor, mas
     return expert_log_marginal_likelihood(hypers, x, z, mask).sum(-1)
 
 
+def _chol_jitter(sig: Tensor, scale: Tensor) -> Tensor:
+    """Batched Cholesky; only the matrices where it fails get jitter ``1e-6 * scale`` (and a
+    warning), so one batch element never changes another's result."""
+    chol, info = torch.linalg.cholesky_ex(sig)
+    bad = info > 0
+    if bool(bad.any()):
+        warnings.warn(f"DGPT: Cholesky failed for {int(bad.sum())} matrices, adding jitter "
+                      "1e-6 * outputscale to those", RuntimeWarning)
+        eye = torch.eye(sig.shape[-1], dtype=sig.dtype, device=sig.device)
+        jit = torch.where(bad, 1e-6 * scale, torch.zeros_like(scale))
+        chol = torch.where(bad[..., None, None], torch.linalg.cholesky(sig + jit[..., None, None] * eye), chol)
+    return chol
+
+
 @torch.no_grad()
 def predict_latent(hypers: Hypers, x: Tensor, z: Tensor, mask: Tensor, x_test: Tensor):
     """Posterior of the latent f at test inputs (Eqs. 5-6), batched over experts.
@@ -170,11 +184,7 @@ def predict_latent(hypers: Hypers, x: Tensor, z: Tensor, mask: Tensor, x_test: T
     noise = hypers.likelihood.noise.unsqueeze(-1)  # (*hb, 1, 1)
     sig = k + noise * torch.eye(x.shape[-2], dtype=x.dtype, device=x.device)
     sig = 0.5 * (sig + sig.mT)
-    chol, info = torch.linalg.cholesky_ex(sig)
-    if bool((info > 0).any()):  # add jitter rather than crash, and say so
-        warnings.warn("DGPT: Cholesky failed, adding jitter 1e-6 * outputscale", RuntimeWarning)
-        jit = 1e-6 * hypers.outputscale.unsqueeze(-1).unsqueeze(-1)
-        chol = torch.linalg.cholesky(sig + jit * torch.eye(x.shape[-2], dtype=x.dtype, device=x.device))
+    chol = _chol_jitter(sig, hypers.outputscale.expand(sig.shape[:-2]))
     ks = hypers.kernel(x, x_test).to_dense() * m.unsqueeze(-1)  # (*batch, W, Q)
     alpha = torch.cholesky_solve((z * m).unsqueeze(-1), chol)  # (*batch, W, 1)
     mean = (ks * alpha).sum(-2)
@@ -213,10 +223,7 @@ def predict_latent_slice(hypers: Hypers, index: int, x: Tensor, z: Tensor, mask:
     eye = torch.eye(x.shape[-2], dtype=x.dtype, device=x.device)
     sig = kk + noise[..., None, None] * eye
     sig = 0.5 * (sig + sig.mT)
-    chol, info = torch.linalg.cholesky_ex(sig)
-    if bool((info > 0).any()):
-        warnings.warn("DGPT: Cholesky failed, adding jitter 1e-6 * outputscale", RuntimeWarning)
-        chol = torch.linalg.cholesky(sig + 1e-6 * os_[..., None, None] * eye)
+    chol = _chol_jitter(sig, os_.expand(sig.shape[:-2]))
     ks = k(x, x_test) * m.unsqueeze(-1)
     alpha = torch.cholesky_solve((z * m).unsqueeze(-1), chol)
     mean = (ks * alpha).sum(-2)

@@ -7,8 +7,10 @@ DataFrame; ``report(...)`` writes the paper-shaped tables and figures.
 
 from __future__ import annotations
 
+import logging
 import math
 import pathlib
+import struct
 import time
 
 import numpy as np
@@ -95,6 +97,47 @@ def _selection(cfg, t) -> dict:
     return sel
 
 
+_HYPER_KEYS = ("optimizer", "lr", "iters", "iters_first", "tol", "max_iters", "gap_check",
+               "init_outputscale", "init_lengthscale_t", "init_lengthscale_r", "init_noise",
+               "min_noise", "max_noise", "min_outputscale", "max_outputscale", "min_lengthscale",
+               "max_lengthscale")
+_FLOAT_HYPER = ("lr", "tol", "init_outputscale", "init_lengthscale_t", "init_lengthscale_r",
+                "init_noise", "min_noise", "max_noise", "min_outputscale", "max_outputscale",
+                "min_lengthscale", "max_lengthscale")
+
+
+def _hyper(h) -> HyperConfig:
+    """``task.hyper`` -> :class:`HyperConfig` (ConfigError on unknown keys or bad values)."""
+    for key in h:
+        if str(key) not in _HYPER_KEYS:
+            raise ConfigError(f"task.hyper.{key} is not a known key; allowed: {list(_HYPER_KEYS)}")
+    hc = HyperConfig()
+    opt = h.get("optimizer", hc.optimizer)
+    check_choice("task.hyper.optimizer", opt, OPTIMISERS)
+    gap = h.get("gap_check", hc.gap_check)
+    if not isinstance(gap, bool):
+        raise ConfigError(f"task.hyper.gap_check={gap!r} must be true or false")
+    for f in _FLOAT_HYPER:
+        check_positive(f"task.hyper.{f}", h.get(f, getattr(hc, f)))
+    out = HyperConfig(
+        optimizer=str(opt),
+        iters=_int("task.hyper.iters", h.get("iters", hc.iters), minimum=0),
+        iters_first=_int("task.hyper.iters_first", h.get("iters_first", hc.iters_first), minimum=0),
+        max_iters=_int("task.hyper.max_iters", h.get("max_iters", hc.max_iters), minimum=1),
+        gap_check=gap,
+        **{f: float(h.get(f, getattr(hc, f))) for f in _FLOAT_HYPER},
+    )
+    for lo, hi, inits in (("min_noise", "max_noise", ("init_noise",)),
+                          ("min_outputscale", "max_outputscale", ("init_outputscale",)),
+                          ("min_lengthscale", "max_lengthscale", ("init_lengthscale_t", "init_lengthscale_r"))):
+        a, b = getattr(out, lo), getattr(out, hi)
+        for f in inits:
+            if not a <= getattr(out, f) <= b:
+                raise ConfigError(f"task.hyper.{f}={getattr(out, f)!r} must lie in "
+                                  f"[task.hyper.{lo}, task.hyper.{hi}] = [{a!r}, {b!r}]")
+    return out
+
+
 def validate(cfg) -> dict:
     """Check ``cfg.task`` (and the top-level cell selection, see :func:`_selection`) and return
     a plain dict of parameters. Raises ConfigError first."""
@@ -142,24 +185,7 @@ def validate(cfg) -> dict:
     p["ucb_delta"] = delta
     p["normalise_beta"] = bool(_get(t, "normalise_beta", False))
     p["grbcm_comm_points"] = _int("task.grbcm_comm_points", _get(t, "grbcm_comm_points", 10))
-    h = _get(t, "hyper", {}) or {}
-    hc = HyperConfig()
-    opt = h.get("optimizer", hc.optimizer)
-    check_choice("task.hyper.optimizer", opt, OPTIMISERS)
-    p["hyper"] = HyperConfig(
-        optimizer=opt,
-        lr=float(h.get("lr", hc.lr)),
-        iters=_int("task.hyper.iters", h.get("iters", hc.iters), minimum=0),
-        iters_first=_int("task.hyper.iters_first", h.get("iters_first", hc.iters_first), minimum=0),
-        init_outputscale=float(h.get("init_outputscale", hc.init_outputscale)),
-        init_lengthscale_t=float(h.get("init_lengthscale_t", hc.init_lengthscale_t)),
-        init_lengthscale_r=float(h.get("init_lengthscale_r", hc.init_lengthscale_r)),
-        init_noise=float(h.get("init_noise", hc.init_noise)),
-        min_noise=float(h.get("min_noise", hc.min_noise)),
-    )
-    for f in ("lr", "init_outputscale", "init_lengthscale_t", "init_lengthscale_r", "init_noise",
-              "min_noise"):
-        check_positive(f"task.hyper.{f}", getattr(p["hyper"], f))
+    p["hyper"] = _hyper(_get(t, "hyper", {}) or {})
     sp = _get(t, "scenario_params", {}) or {}
     p["scenario_params"] = {s: dict(sp.get(s, {}) or {}) for s in p["scenarios"]}
     tr = _get(t, "trace", {}) or {}
@@ -175,7 +201,7 @@ def validate(cfg) -> dict:
     return p
 
 
-def _episode_metrics(res, truth, avail, delta):
+def _episode_metrics(res, truth, avail, delta, tol=None):
     """Per-episode, per-method scalar metrics. Returns dict name -> (B, Mth) numpy arrays."""
     b, nm = res.upd_mean.shape[:2]
     T = truth.shape[1]
@@ -209,7 +235,53 @@ def _episode_metrics(res, truth, avail, delta):
     out["frac_steps_detected"] = frac[:, None].expand(b, nm)
     out["mean_experts"] = ((res.n_experts.to(truth.dtype) * evf).sum(1) / evf.sum(1).clamp_min(1))[:, None].expand(b, nm)
     out["ucb_nominal"] = torch.full((b, nm), 1.0 - delta, dtype=truth.dtype)
+    out.update(_hyper_metrics(res, tol))
     return {k_: v.detach().cpu().numpy() for k_, v in out.items()}
+
+
+def _per_method(res, field):
+    """(B, methods, C, T) view of a per-pipeline record: rule a -> its pipeline, standard GP -> c."""
+    e, c = getattr(res, f"{field}_e"), getattr(res, f"{field}_c")
+    cols = []
+    for a, m in enumerate(res.methods):
+        if m == "standard_gp":
+            cols.append(c[:, 0])
+        else:
+            cols.append(e[:, 0 if e.shape[1] == 1 else a])
+    return torch.stack(cols, 1)
+
+
+def _hyper_metrics(res, tol):
+    """Per-episode summaries of the hyperparameter learning (steps with data, both coordinates)."""
+    if res.learning is None or res.hyper_e is None and res.hyper_c is None:
+        return {}
+    lw = res.learning[:, None, None, :].to(res.upd_mean.dtype)  # (B, 1, 1, T)
+    cnt = (lw.sum(-1) * 2).clamp_min(1)[..., 0]  # (B, 1)
+
+    def mean(x):
+        x = torch.nan_to_num(x.to(lw.dtype), nan=0.0)
+        return (x * lw).sum((-1, -2)) / cnt
+
+    out = {"hyper_iters": mean(_per_method(res, "iters")),
+           "hyper_noise_var": mean(_per_method(res, "hyper")[..., -1]),
+           "hyper_outputscale": mean(_per_method(res, "hyper")[..., 0])}
+    grad = _per_method(res, "grad")
+    if bool(torch.isfinite(grad).any()):
+        on = lw.expand_as(grad) > 0
+        out["hyper_grad_max"] = torch.where(on, grad, torch.zeros_like(grad)).amax((-1, -2))
+        if tol is not None:
+            out["hyper_unconverged_frac"] = mean((grad > tol).to(lw.dtype))
+    gap = _per_method(res, "gap")
+    if bool(torch.isfinite(gap).any()):
+        on = (lw.expand_as(gap) > 0) & torch.isfinite(gap)
+        g = torch.where(on, gap, torch.full_like(gap, float("nan"))).flatten(-2)
+        out["ml_gap_mean"] = mean(gap)
+        out["ml_gap_median"] = torch.nan_to_num(g.nanmedian(-1).values, nan=0.0)
+        out["ml_gap_max"] = torch.where(on, gap, torch.zeros_like(gap)).amax((-1, -2))
+        out["ml_gap_frac_gt1"] = mean((gap > 1.0).to(lw.dtype))
+        out["noise_var_mle"] = mean(_per_method(res, "noise_mle"))
+        out["ml_gap_unsolved_frac"] = mean(1.0 - _per_method(res, "gap_solved"))
+    return out
 
 
 def _method_keys(methods):
@@ -236,26 +308,61 @@ def run(cfg) -> pd.DataFrame:
         torch.set_num_threads(old_threads)
 
 
+def _stream_key(seed: int, *key: int) -> int:
+    """A 63-bit seed for the random stream named by ``key`` (numpy ``SeedSequence``)."""
+    ss = np.random.SeedSequence(entropy=int(seed) % 2 ** 64, spawn_key=tuple(int(k) for k in key))
+    return int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
+def _float_key(x: float) -> int:
+    return struct.unpack("<Q", struct.pack("<d", float(x)))[0]
+
+
+def episodes(p, seed):
+    """Trajectories, sensors and measurements of the grid, one random stream per episode.
+
+    Stream keys (``seed`` + key): (0, scenario, run) -> trajectory, then sensor field (shared by
+    the noise levels of a run: common random numbers); (1, scenario, run, sigma) -> measurement
+    noise; (2, scenario, run, sigma) -> the episode key of grBCM's draws. ``scenario`` is the index
+    in :data:`SCENARIOS` and ``run`` the MC-run index, so an episode does not depend on which
+    other scenarios, noise levels or runs are part of the job, nor on ``task.mc_runs``.
+
+    Returns:
+        truth (E, T, 2), meas (E, S, T, 2), avail (E, S, T), window (E,), episode keys (E,),
+        keys [(scenario, sigma, run)] of the E episodes.
+    """
+    R, T = p["mc_runs"], p["num_steps"]
+    truth_l, meas_l, av_l, win_l, ek_l, keys = [], [], [], [], [], []
+    for s in p["scenarios"]:
+        si = SCENARIOS.index(s)
+        pos, sens = [], []
+        for r in range(R):
+            g = torch.Generator().manual_seed(_stream_key(seed, 0, si, r))
+            pos.append(generate(s, 1, T, g, p["scenario_params"][s], dt=p["dt"], dtype=torch.float64)[0])
+            sens.append(sensor_field(1, p["num_sensors"], p["area_size"], g))
+        for nz in p["noises"]:
+            for r in range(R):
+                g = torch.Generator().manual_seed(_stream_key(seed, 1, si, r, _float_key(nz)))
+                z, av = measure(pos[r], sens[r], p["sensing_range"],
+                                torch.full((1,), nz, dtype=torch.float64), g)
+                truth_l.append(pos[r])
+                meas_l.append(z)
+                av_l.append(av)
+                ek_l.append(_stream_key(seed, 2, si, r, _float_key(nz)))
+                keys.append((s, nz, r))
+            win_l.append(torch.full((R,), p["window"][s], dtype=torch.long))
+    return (torch.cat(truth_l), torch.cat(meas_l), torch.cat(av_l), torch.cat(win_l),
+            torch.tensor(ek_l, dtype=torch.long), keys)
+
+
 def _run(p, seed, device, dtype, progress):
     t0 = time.time()
-    R, T = p["mc_runs"], p["num_steps"]
-    gen = torch.Generator().manual_seed(seed)
-    truth_l, meas_l, av_l, win_l, keys = [], [], [], [], []
-    for s in p["scenarios"]:
-        pos, _ = generate(s, R, T, gen, p["scenario_params"][s], dt=p["dt"], dtype=torch.float64)
-        sens = sensor_field(R, p["num_sensors"], p["area_size"], gen)
-        for nz in p["noises"]:
-            z, av = measure(pos, sens, p["sensing_range"], torch.full((R,), nz, dtype=torch.float64), gen)
-            truth_l.append(pos)
-            meas_l.append(z)
-            av_l.append(av)
-            win_l.append(torch.full((R,), p["window"][s], dtype=torch.long))
-            keys += [(s, nz, r) for r in range(R)]
-    truth, meas = torch.cat(truth_l), torch.cat(meas_l)
-    avail, window = torch.cat(av_l), torch.cat(win_l)
+    R = p["mc_runs"]
+    truth, meas, avail, window, ekeys, keys = episodes(p, seed)
     run_idx = torch.tensor([k[2] for k in keys])
 
     frames = []
+    n_jitter = 0
     for c0 in range(0, R, p["batch_runs"]):
         sel = torch.nonzero((run_idx >= c0) & (run_idx < c0 + p["batch_runs"]))[:, 0]
         tr = truth[sel].to(device=device, dtype=dtype)
@@ -263,9 +370,11 @@ def _run(p, seed, device, dtype, progress):
                     gp_input=p["gp_input"], aggregations=p["aggregations"],
                     centralised=p["centralised"], hyper=p["hyper"], dt=p["dt"],
                     delta=p["ucb_delta"], normalise_beta=p["normalise_beta"], progress=progress,
-                    grbcm_comm_points=p["grbcm_comm_points"], comm_seed=seed * 1_000_003 + c0)
+                    grbcm_comm_points=p["grbcm_comm_points"], episode_keys=ekeys[sel])
+        n_jitter += res.n_jitter
         av = avail[sel].to(device)
-        met = _episode_metrics(res, tr, av, p["ucb_delta"])
+        met = _episode_metrics(res, tr, av, p["ucb_delta"],
+                               p["hyper"].tol if p["hyper"].optimizer == "newton" else None)
         model, cons = _method_keys(res.methods)
         nb, nm = len(sel), len(res.methods)
         kk = [keys[i] for i in sel.tolist()]
@@ -294,6 +403,9 @@ def _run(p, seed, device, dtype, progress):
     df["noise"] = df["noise"].astype(float)
     df["episode"] = df["episode"].astype(int)
     df.attrs["wall_time_s"] = time.time() - t0
+    df.attrs["cholesky_jitter"] = n_jitter
+    if n_jitter:
+        logging.getLogger(__name__).warning("liu_dgpt: %d Cholesky factorisations needed jitter", n_jitter)
     cols = ["episode", "scenario", "noise", "gp_input", "model", "consensus", "node", "step",
             "metric", "value"]
     return df[cols]
@@ -343,6 +455,41 @@ def _md_table(df: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+def _hyper_table(a: pd.DataFrame, noises) -> pd.DataFrame | None:
+    """Per (scenario, sigma, DGPT / standard GP): hyperparameter-learning summaries."""
+    if "hyper_iters" not in set(a["metric"]):
+        return None
+    cols = [("hyper_iters", "iters/step", "mean", "{:.2f}"),
+            ("hyper_noise_var", "noise var", "mean", "{:.2f}"),
+            ("hyper_unconverged_frac", "unconverged", "mean", "{:.4f}"),
+            ("ml_gap_median", "gap: median of run medians", "median", "{:.2f}"),
+            ("ml_gap_mean", "gap mean", "mean", "{:.2f}"),
+            ("ml_gap_max", "gap max", "max", "{:.1f}"),
+            ("ml_gap_frac_gt1", "frac gap > 1", "mean", "{:.3f}"),
+            ("noise_var_mle", "noise var at max", "mean", "{:.2f}")]
+    present = set(a["metric"])
+    rows = []
+    for sc in sorted(a["scenario"].unique()):
+        for nz in noises:
+            for label, sel in (("DGPT", a["model"] == "dgpt"), ("Standard GP", a["model"] == "standard_gp")):
+                sub = a[sel & (a["scenario"] == sc) & (a["noise"] == nz)]
+                if sub.empty:
+                    continue
+                row = {"Scenario": sc.upper(), "σ": f"{nz:g}", "true σ²": f"{nz * nz:g}", "Approach": label}
+                for met, head, how, fmt in cols:
+                    if met not in present:
+                        continue
+                    v = sub[sub["metric"] == met]
+                    if v.empty:
+                        row[head] = ""
+                        continue
+                    # per-method run means (mean / median over runs) or run maxima
+                    val = {"mean": v["mean"].mean(), "median": v["median"].mean(), "max": v["max"].max()}[how]
+                    row[head] = fmt.format(val)
+                rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: pathlib.Path) -> str:
     """Write Tables I/II (+ PoE/BCM rows), a UCB-coverage table, Figs 5-7; return Markdown."""
     import matplotlib
@@ -360,7 +507,7 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: pathlib.Path) 
     scal = res[res["step"] < 0]
     md = []
     keys = ["gp_input", "scenario", "noise", "model", "consensus", "metric"]
-    agg = scal.groupby(keys, dropna=False)["value"].agg(["mean", "std", "count"]).reset_index()
+    agg = scal.groupby(keys, dropna=False)["value"].agg(["mean", "std", "count", "median", "max"]).reset_index()
 
     for gp_input in sorted(agg["gp_input"].unique()):
         name, title = _TITLE.get(gp_input, (f"liu_table_{gp_input}", gp_input))
@@ -403,6 +550,14 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: pathlib.Path) 
         nom = f"{nominal.iloc[0]:.2f}" if len(nominal) else "?"
         text += (f"\n\nEmpirical coverage of the Theorem 1 bound (Eq. 24, nominal ≥ {nom}) and of the "
                  f"3σ band, updated estimates:\n\n" + _md_table(ctab))
+        htab = _hyper_table(a, noises)
+        if htab is not None:
+            htab.to_csv(out_dir / f"{name}_hyper.csv", index=False)
+            text += ("\n\nHyperparameter learning (steps with data, both coordinates; DGPT = mean "
+                     "over the rules' pipelines, max for maxima): iterations per step, learned noise "
+                     "variance [m²] (true σ²), and with `task.hyper.gap_check=true` the distance "
+                     "below the maximum of Eq. 15 / Eq. 14 [nats] and the maximiser's noise "
+                     "variance:\n\n" + _md_table(htab))
         (out_dir / f"{name}.md").write_text(text + "\n")
         md.append(text)
 
