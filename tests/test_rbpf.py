@@ -213,7 +213,10 @@ def test_rbpf_approaches_kalman_filter_single_mode():
     hvec = torch.tensor([1.0, 0.5, 0.0, 0.0])
     theta = make_params([0.0], [1.0], [[1.0]])
     x0 = torch.tensor([0.0, 0.0, 3.0, -1.0])
-    steps, b = 15, 8
+    # b = 64 independent chains: over 20 generator seeds (this code) the RMS deviation from the Kalman mean was
+    # 0.0585 +- 0.0096 (max 0.087) with N = 3000 and the ratio err(3000)/err(30) 0.114 +- 0.018 (max 0.159), close to
+    # the Monte Carlo rate sqrt(30/3000) = 0.1. The bounds below are >= 4 standard deviations above those means.
+    steps, b = 15, 64
     xs = [x0.expand(b, 4)]
     for _ in range(steps):
         xs.append(dyn.sample(xs[-1], g))
@@ -229,7 +232,7 @@ def test_rbpf_approaches_kalman_filter_single_mode():
             st, _, _ = rbpf_step(st, y[:, t], lambda x: x @ hvec, th, dyn, g, eta=1.0, estep=False)
             est.append(posterior_mean(st))
         errs[n] = (torch.stack(est, 1) - kf)[..., :2].pow(2).mean().sqrt().item()
-    assert errs[3000] < 0.35 * errs[30], errs
+    assert errs[3000] < 0.2 * errs[30], errs
     assert errs[3000] < 0.1, errs
 
 
@@ -349,7 +352,12 @@ def test_end_to_end_tiny_run(tmp_path):
     thr = run_level[run_level.metric == "throughput_kBps"].groupby("strategy").value.first()
     assert thr["noncooperative"] == 0 and abs(thr["consensus_10"] - 2400 * 20 / 1024) < 1e-9
     assert abs(thr["centralised"] - 232 * 20 / 1024) < 1e-9
-    assert run_level[run_level.metric == "pos_rms"].value.max() < 200.0  # tracks (map spacing 50 m)
+    # tracks: over 40 independent runs x 5 strategies of this configuration (seed 3) the steady-state pos_rms was
+    # 2.55 +- 0.75 m (median 2.42, max 6.10). The median of the 10 values here has a standard error of ~0.3 m, so
+    # the bound 4 m is > 5 standard errors above 2.42; the max bound 10 m is > 9 sd above the mean
+    pos = run_level[run_level.metric == "pos_rms"].value
+    assert pos.median() < 4.0 and pos.max() < 10.0, pos.describe()
+    assert run_level[run_level.metric == "lost_track"].value.sum() == 0
     series = df[df.time_s >= 0]
     assert {"pos_se_t", "mu_1", "sigma_2", "pi_11"} <= set(series.metric)
     # burn-in: parameters untouched before step 20 (t = 1 s)
@@ -374,6 +382,97 @@ def test_worker_processes_match_serial():
     assert sorted(set(a[keep].episode)) == [0, 1]
 
 
+def _by_key(df):
+    d = df[df.metric != "wall_time_s"]
+    return d.set_index(["episode", "strategy", "metric", "time_s"]).value.sort_index()
+
+
+def test_runs_independent_of_batch_and_strategy_list():
+    """A Monte Carlo run's result depends only on (seed, run index, strategy): run 1 alone (mc_batch=1), inside a
+    batch of 3, and with a different strategy list give the same outputs to 1e-9 (per-run random streams)."""
+    from dslearn.studies import braga_tbn
+
+    over = {"task.mc_runs": 3, "task.steps": 40, "task.num_particles": 24, "task.em.burn_in": 10,
+            "task.steady_state_s": 0.5, "task.workers": 1, "task.strategies": "[noncooperative,centralised,consensus_5]"}
+    batch3 = _by_key(braga_tbn.run(_tiny_cfg(**over, **{"task.mc_batch": 3})))
+    alone = _by_key(braga_tbn.run(_tiny_cfg(**over, **{"task.mc_batch": 1})))
+    other = _by_key(braga_tbn.run(_tiny_cfg(**{**over, "task.mc_batch": 2, "task.strategies": "[consensus_5]"})))
+    assert batch3.index.equals(alone.index) and len(batch3) > 500
+    assert set(batch3.index.get_level_values("metric")) >= {"pos_rms", "mu_rms", "pos_se_t", "mu_1", "lost_track"}
+    assert (batch3 - alone).abs().max() < 1e-9
+    sub = batch3.loc[other.index]
+    assert (sub - other).abs().max() < 1e-9
+    # and the runs are not copies of each other
+    e = batch3.xs("pos_rms", level="metric")
+    assert e.xs(0, level="episode").sub(e.xs(1, level="episode")).abs().min() > 1e-6
+
+
+def test_trace_runs_match_study_and_diagnostics():
+    """trace_runs on a subset of runs (in another order) reproduces the study's per-run results and records
+    consistent diagnostics (ESS in [1, N], position spread >= 0, h_misfit = h(estimate) - h(truth))."""
+    from dslearn.studies import braga_tbn
+
+    over = {"task.mc_runs": 3, "task.mc_batch": 3, "task.steps": 30, "task.num_particles": 20, "task.em.burn_in": 10,
+            "task.steady_state_s": 0.5, "task.workers": 1, "task.strategies": "[noncooperative,consensus_1]"}
+    cfg = _tiny_cfg(**over)
+    study = _by_key(braga_tbn.run(cfg))
+    scn, res = braga_tbn.trace_runs(cfg, [2, 0])
+    n_ss = 10  # 0.5 s at 50 ms
+    for ri, ep in enumerate([2, 0]):
+        for ci, sname in enumerate(["noncooperative", "consensus_1"]):
+            want = study[(ep, sname, "pos_rms", -1.0)]
+            assert abs(res.pos_se[-n_ss:, ri, ci].mean().sqrt().item() - want) < 1e-9
+    dg = res.diagnostics
+    assert set(dg) == {"ess", "spread", "vel_se", "h_misfit", "p_mode_last", "resampled"}
+    assert all(v.shape == res.pos_se.shape for v in dg.values())
+    assert (dg["ess"] >= 1 - 1e-9).all() and (dg["ess"] <= 20 + 1e-9).all() and (dg["spread"] >= 0).all()
+    assert ((dg["p_mode_last"] >= 0) & (dg["p_mode_last"] <= 1 + 1e-12)).all()
+    assert dg["resampled"].any() and res.counters["resample_events"].sum() == dg["resampled"].sum()
+    # node subsets (diagnosis) are for the non-cooperative strategy only
+    with pytest.raises(ConfigError, match="noncooperative"):
+        braga_tbn.trace_runs(cfg, [0], nodes=[0])
+
+
+def test_terrain_gradient_planar_closed_form():
+    """On a planar map z = 500 + 0.3 X - 0.4 Y the bilinear lookup is exact, so |grad h| = 0.5 everywhere."""
+    from dslearn.rbpf.terrain import Scenario, TerrainMap
+    from dslearn.studies.braga_tbn import terrain_gradient
+
+    res = 25.0
+    yy, xx = torch.meshgrid(torch.arange(81.0) * res, torch.arange(81.0) * res, indexing="ij")
+    h = TerrainMap(500.0 + 0.3 * xx - 0.4 * yy, res)
+    x = torch.zeros(2, 3, 6, 4)
+    x[..., :2] = 300.0 + 1500.0 * torch.rand(2, 3, 6, 2, generator=torch.Generator().manual_seed(0))
+    g = terrain_gradient(Scenario(x, torch.zeros(2, 3, 6, dtype=torch.long), torch.zeros(2, 3, 6), h))
+    assert g.shape == (2, 3, 5)
+    torch.testing.assert_close(g, torch.full_like(g, 0.5), atol=1e-9, rtol=0)
+
+
+def test_regularised_resampling_kernel_covariance():
+    """Post-regularised resampling: resampled entries get noise N(0, h^2 Sigma) (Sigma = weighted covariance before
+    resampling, h = optimal bandwidth); entries above the ESS threshold are untouched; regularise=0 = plain."""
+    from dslearn.rbpf.filter import RBPFState, regularisation_bandwidth, resample
+
+    g = torch.Generator().manual_seed(11)
+    n = 40000
+    cov = torch.tensor([[4.0, 1.0, 0.5, 0.0], [1.0, 2.0, 0.0, 0.3], [0.5, 0.0, 1.0, 0.2], [0.0, 0.3, 0.2, 0.5]])
+    x = torch.randn(2, n, 4, generator=g) @ torch.linalg.cholesky(cov).T
+    logw = torch.stack([torch.log_softmax(2.0 * torch.randn(n, generator=g), -1), torch.full((n,), -math.log(n))])
+    st = RBPFState(x, logw, torch.ones(2, n, 1), torch.zeros(2, n, 1, 1))
+    plain, mask0 = resample(st, 0.5, torch.Generator().manual_seed(4))
+    reg, mask = resample(st, 0.5, torch.Generator().manual_seed(4), regularise=1.0)
+    assert mask.tolist() == mask0.tolist() == [True, False]
+    torch.testing.assert_close(reg.x[1], x[1], rtol=0, atol=0)  # not resampled: untouched
+    d = reg.x[0] - plain.x[0]  # same ancestors (same uniform), plus the kernel noise
+    w = logw[0].exp()
+    m = (w[:, None] * x[0]).sum(0)
+    sigma = ((w[:, None] * (x[0] - m)).T @ (x[0] - m))
+    h = regularisation_bandwidth(n, 4)
+    assert abs(regularisation_bandwidth(300, 4) - 0.4660) < 1e-4  # (4 / 1800)^(1/8)
+    emp = d.T @ d / n
+    torch.testing.assert_close(emp, h * h * sigma, atol=0.03 * h * h * sigma.diagonal().max(), rtol=0)
+
+
 def test_run_reproducible_and_bad_config():
     from dslearn.studies import braga_tbn
 
@@ -390,6 +489,9 @@ def test_run_reproducible_and_bad_config():
                       ({"task.consensus.weights": "matrix", "task.consensus.matrix": "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"}, "22c"),
                       ({"task.num_particles": 0}, "num_particles"),
                       ({"task.ess_threshold": 1.5}, "ess_threshold"),
-                      ({"task.workers": 0}, "workers")):
+                      ({"task.workers": 0}, "workers"),
+                      ({"task.filter_streams": "shared"}, "filter_streams"),
+                      ({"task.resampling.regularise": -1.0}, "regularise"),
+                      ({"task.lost_track_m": 0.0}, "lost_track_m")):
         with pytest.raises(ConfigError, match=msg):
             braga_tbn.run(_tiny_cfg(**over))

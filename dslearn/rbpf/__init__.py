@@ -7,6 +7,7 @@ Modules:
     cooperation: non-cooperative / centralised (Eq. 19) / consensus (Algorithm 3, Eq. 20-22, 26), throughput.
     terrain: terrain map, bilinear lookup, constant-velocity model (Eq. 23-24), finger-four formation.
     tbn: the vectorised distributed online-EM loop for the TBN study.
+    (random streams per Monte Carlo run and strategy: :mod:`dslearn.streams`, so results do not depend on batching.)
 """
 
 from .cooperation import (average_consensus, check_eq22, combination_matrices, max_degree_paper,
@@ -15,11 +16,12 @@ from .filter import (LinearGaussianDynamics, RBPFState, init_state, local_stats,
                      rbpf_step)
 from .jmnls import NoiseParams, m_step, make_params, params_dim, stats_dim, validate_params
 from .terrain import TerrainMap, cv_model, make_terrain, simulate
+from ..streams import Streams, stream_seed
 from .tbn import run_tbn
 
 __all__ = [
     "average_consensus", "check_eq22", "combination_matrices", "max_degree_paper", "throughput_bytes_per_step",
     "weight_matrix", "LinearGaussianDynamics", "RBPFState", "init_state", "local_stats", "online_estep",
     "posterior_mean", "rbpf_step", "NoiseParams", "m_step", "make_params", "params_dim", "stats_dim",
-    "validate_params", "TerrainMap", "cv_model", "make_terrain", "simulate", "run_tbn",
+    "validate_params", "TerrainMap", "cv_model", "make_terrain", "simulate", "run_tbn", "Streams", "stream_seed",
 ]

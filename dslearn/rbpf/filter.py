@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from .jmnls import NoiseParams, obs_loglik, stats_dim
+from ..streams import Streams, rand, randn
 
 
 def kernel_log_floor(dtype: torch.dtype) -> float:
@@ -63,9 +64,9 @@ class LinearGaussianDynamics:
         cov = 0.5 * (cov + cov.T) + torch.diag(self.kernel_jitter)
         self.kernel_chol = torch.linalg.cholesky(cov)
 
-    def sample(self, x: Tensor, gen: torch.Generator) -> Tensor:
-        """Draw x_t ~ f(.|x_{t-1}). x: (..., n) -> (..., n)."""
-        w = torch.randn(*x.shape[:-1], self.Q.shape[0], generator=gen, dtype=x.dtype, device=x.device)
+    def sample(self, x: Tensor, gen: torch.Generator | Streams) -> Tensor:
+        """Draw x_t ~ f(.|x_{t-1}). x: (..., n) -> (..., n). ``gen``: one generator or per-entry streams."""
+        w = randn((*x.shape[:-1], self.Q.shape[0]), gen, dtype=x.dtype, device=x.device)
         return x @ self.F.T + (w @ self.chol_q.T) @ self.G.T
 
     def whiten(self, x: Tensor) -> Tensor:
@@ -115,31 +116,61 @@ def ess(logw: Tensor) -> Tensor:
     return torch.exp(-torch.logsumexp(2.0 * logw, -1))
 
 
-def systematic_indices(logw: Tensor, gen: torch.Generator) -> Tensor:
-    """Systematic resampling ancestors. logw: (B..., N) normalised -> (B..., N) long."""
+def systematic_indices(logw: Tensor, gen: torch.Generator | Streams | None = None, u0: Tensor | None = None) -> Tensor:
+    """Systematic resampling ancestors. logw: (B..., N) normalised -> (B..., N) long.
+    ``u0``: (B..., 1) uniforms (drawn from ``gen`` if not given)."""
     n = logw.shape[-1]
     cw = torch.exp(logw).cumsum(-1)
     cw = cw / cw[..., -1:]
-    u0 = torch.rand(*logw.shape[:-1], 1, generator=gen, dtype=logw.dtype, device=logw.device)
+    if u0 is None:
+        u0 = rand((*logw.shape[:-1], 1), gen, dtype=logw.dtype, device=logw.device)
     u = (u0 + torch.arange(n, dtype=logw.dtype, device=logw.device)) / n
     return torch.searchsorted(cw.contiguous(), u.contiguous()).clamp_max(n - 1)
 
 
-def resample(state: RBPFState, ess_threshold: float, gen: torch.Generator) -> tuple[RBPFState, Tensor]:
+def regularisation_bandwidth(n: int, d: int) -> float:
+    """Optimal Gaussian-kernel bandwidth ``(4 / (N (d + 2)))^(1 / (d + 4))`` of the regularised particle filter
+    (Musso, Oudjane & Le Gland 2001), in units of the particle cloud's standard deviation (0.466 for N = 300, d = 4)."""
+    return (4.0 / (n * (d + 2.0))) ** (1.0 / (d + 4.0))
+
+
+def resample(state: RBPFState, ess_threshold: float, gen: torch.Generator | Streams,
+             regularise: float = 0.0) -> tuple[RBPFState, Tensor]:
     """Algorithm 1, line 1: resample the batches whose ESS < ess_threshold * N.
+
+    The systematic-resampling uniform (and, with ``regularise > 0``, the kernel noise) is drawn for every batch
+    entry at every call, whether or not it resamples, so an entry's random stream never depends on what the
+    other entries of the batch do.
+
+    Args:
+        regularise: 0 (the paper: plain systematic resampling) or a factor ``c > 0``: post-regularised
+            resampling (Musso et al. 2001): every resampled particle is moved by ``N(0, (c h)^2 Sigma)`` with
+            ``Sigma`` the weighted covariance of the particles before resampling and ``h`` the optimal
+            bandwidth :func:`regularisation_bandwidth`. Restores the diversity that resampling removes.
 
     Returns:
         The (possibly) resampled state and a (B...) bool mask of the batches that were resampled.
     """
     n = state.logw.shape[-1]
+    dtype, device = state.logw.dtype, state.logw.device
+    u0 = rand((*state.logw.shape[:-1], 1), gen, dtype=dtype, device=device)
+    kern = randn(state.x.shape, gen, dtype=dtype, device=device) if regularise > 0 else None
     mask = ess(state.logw) < ess_threshold * n
     if not bool(mask.any()):
         return state, mask
-    idx = systematic_indices(state.logw, gen)
+    idx = systematic_indices(state.logw, u0=u0)
     keep = torch.arange(n, device=idx.device).expand_as(idx)
     idx = torch.where(mask[..., None], idx, keep)
     # gather with explicitly expanded indices (take_along_dim adds a modulo pass for negative indices)
     x = torch.gather(state.x, -2, idx[..., None].expand_as(state.x))
+    if kern is not None:
+        w = torch.exp(state.logw)
+        dx = state.x - torch.einsum("...i,...in->...n", w, state.x)[..., None, :]
+        cov = torch.einsum("...i,...in,...im->...nm", w, dx, dx)
+        lam, vec = torch.linalg.eigh(0.5 * (cov + cov.transpose(-1, -2)))  # PSD square root, never fails
+        root = vec * lam.clamp_min(0.0).sqrt()[..., None, :]
+        h = regularise * regularisation_bandwidth(n, state.x.shape[-1])
+        x = x + torch.where(mask[..., None, None], h * kern @ root.transpose(-1, -2), torch.zeros_like(x))
     alpha = torch.gather(state.alpha, -2, idx[..., None].expand_as(state.alpha))
     kd = state.T.shape[-2] * state.T.shape[-1]
     T = torch.gather(state.T.flatten(-2), -2, idx[..., None].expand(*idx.shape, kd)).unflatten(-1, state.T.shape[-2:])
@@ -268,8 +299,8 @@ def local_stats(logw: Tensor, alpha: Tensor, T: Tensor) -> Tensor:
 
 
 def rbpf_step(state: RBPFState, y: Tensor, h: Callable[[Tensor], Tensor], theta: NoiseParams,
-              dyn: LinearGaussianDynamics, gen: torch.Generator, *, eta: float, ess_threshold: float = 0.5,
-              estep: bool = True) -> tuple[RBPFState, Tensor | None, dict]:
+              dyn: LinearGaussianDynamics, gen: torch.Generator | Streams, *, eta: float, ess_threshold: float = 0.5,
+              estep: bool = True, regularise: float = 0.0) -> tuple[RBPFState, Tensor | None, dict]:
     """One RBPF step (Algorithm 1) followed by the online E-step (Algorithm 2).
 
     Args:
@@ -282,6 +313,7 @@ def rbpf_step(state: RBPFState, y: Tensor, h: Callable[[Tensor], Tensor], theta:
         eta: E-step step size eta_t.
         ess_threshold: resample when ESS < ess_threshold * N (0 never, 1 always).
         estep: run Algorithm 2 (set False for a pure filter).
+        regularise: post-regularised resampling factor (0 = the paper's plain resampling; see :func:`resample`).
 
     Returns:
         (new state, local statistics (B..., D) or None, info dict with ``resampled`` (B...) bool,
@@ -289,7 +321,7 @@ def rbpf_step(state: RBPFState, y: Tensor, h: Callable[[Tensor], Tensor], theta:
         non-finite measurement) and the weights were reset to uniform, and ``loglik`` (B...) the estimate
         of log p(y_t | y_{1:t-1})).
     """
-    st, resampled = resample(state, ess_threshold, gen)
+    st, resampled = resample(state, ess_threshold, gen, regularise)
     alpha_pred = torch.einsum("...ik,...kl->...il", st.alpha, theta.pi)  # Eq. (11)
     x_new = dyn.sample(st.x, gen)  # prior proposal (Algorithm 1, line 4)
     e = y[..., None] - h(x_new)  # (B..., N)

@@ -186,30 +186,33 @@ def stationary(pi: Tensor) -> Tensor:
     return p / p.sum()
 
 
-def simulate_modes(pi: Tensor, shape: tuple, steps: int, gen: torch.Generator, r0: Tensor | None = None) -> Tensor:
+def simulate_modes(pi: Tensor, shape: tuple, steps: int, gen, r0: Tensor | None = None) -> Tensor:
     """Sample mode sequences r_0..r_T of the Markov chain (Eq. 1a), vectorised over ``shape``.
 
     Args:
         pi: (K, K) TPM.
         shape: batch shape.
         steps: T (number of transitions).
-        gen: torch generator.
+        gen: torch generator, or :class:`dslearn.streams.Streams` over leading dims of ``shape``.
         r0: optional (shape) initial modes; default drawn from the stationary distribution.
 
     Returns:
         (*shape, T+1) long tensor of modes.
     """
+    from ..streams import rand
+
+    shape = tuple(shape)
     n = int(torch.tensor(shape).prod()) if len(shape) else 1
     cum = pi.cumsum(-1)
     if r0 is None:
         p0 = stationary(pi)
-        u = torch.rand(n, generator=gen, dtype=pi.dtype, device=pi.device)
+        u = rand(shape, gen, dtype=pi.dtype, device=pi.device).reshape(n)
         r = torch.searchsorted(p0.cumsum(0).contiguous(), u[:, None]).squeeze(-1).clamp_max(pi.shape[0] - 1)
     else:
         r = r0.reshape(n).to(pi.device)
     out = [r]
-    u = torch.rand(steps, n, generator=gen, dtype=pi.dtype, device=pi.device)
+    u = rand((*shape, steps), gen, dtype=pi.dtype, device=pi.device).reshape(n, steps)
     for t in range(steps):
-        r = (u[t, :, None] > cum[r]).sum(-1).clamp_max(pi.shape[0] - 1)
+        r = (u[:, t, None] > cum[r]).sum(-1).clamp_max(pi.shape[0] - 1)
         out.append(r)
     return torch.stack(out, -1).reshape(*shape, steps + 1)

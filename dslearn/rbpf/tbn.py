@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from .cooperation import combination_matrices
-from .filter import LinearGaussianDynamics, init_state, posterior_mean, rbpf_step
+from .filter import LinearGaussianDynamics, ess, init_state, posterior_mean, rbpf_step
 from .jmnls import NoiseParams, m_step
 from .terrain import Scenario
 
@@ -31,6 +31,10 @@ class TBNResult:
         pos_se: (T, R, C, S) squared position error ||p_hat - p||^2 [m^2].
         mu, sigma: (T, R, C, S, K) parameter estimates after the step-t M-step.
         pi: (T, R, C, S, K, K) TPM estimates.
+        diagnostics: with ``diagnostics=True``, per-step (T, R, C, S) traces: ``ess`` (before resampling),
+            ``spread`` (weighted RMS distance of the particle positions from their mean [m]), ``vel_se``
+            (squared velocity error [(m/s)^2]), ``h_misfit`` (terrain height at the estimate minus at the truth
+            [m]), ``p_mode_last`` (posterior probability of the last mode) and ``resampled`` (bool).
         counters: event counts: ``resample_events`` and ``degenerate_events`` (R, C) summed over nodes and
             time (a degenerate event = all weights of a node underflowed and were reset to uniform),
             ``sigma_clamped``, ``offmap_particles`` (sampled every 50 steps), ``filter_steps``.
@@ -41,12 +45,13 @@ class TBNResult:
     sigma: Tensor
     pi: Tensor
     counters: dict = field(default_factory=dict)
+    diagnostics: dict = field(default_factory=dict)
 
 
 def run_tbn(scn: Scenario, strategies, weights: Tensor, init: NoiseParams, dyn: LinearGaussianDynamics, *,
-            num_particles: int, gen: torch.Generator, eta_exponent: float = 0.7, burn_in: int = 50,
-            ess_threshold: float = 0.5, sigma_floor: float = 1e-3, init_mode: str = "true", progress: bool = False
-            ) -> TBNResult:
+            num_particles: int, gen, eta_exponent: float = 0.7, burn_in: int = 50,
+            ess_threshold: float = 0.5, sigma_floor: float = 1e-3, init_mode: str = "true", progress: bool = False,
+            diagnostics: bool = False, regularise: float = 0.0) -> TBNResult:
     """Run the distributed online EM on a batch of simulated flights.
 
     Args:
@@ -56,12 +61,16 @@ def run_tbn(scn: Scenario, strategies, weights: Tensor, init: NoiseParams, dyn: 
         init: initial parameter guess (unbatched, K modes).
         dyn: filter dynamics (Eq. 23 with the filter's Q).
         num_particles: N_P.
+        gen: a ``torch.Generator`` or :class:`~dslearn.streams.Streams` over (R, C) (one stream per
+            run and strategy: each run's result is then independent of the batch it is in).
         eta_exponent: eta_t = t^-eta_exponent.
         burn_in: the M-step starts after this many steps (E-step runs from t = 1).
         ess_threshold: resampling threshold as a fraction of N_P.
         sigma_floor: lower bound on estimated sigma.
         init_mode: ``true`` (alpha_{0|0} = 1(r_0 = l), as in the paper) or ``uniform``.
         progress: show a tqdm bar over time.
+        regularise: post-regularised resampling factor (0: the paper's plain systematic resampling).
+        diagnostics: also record the per-step traces listed in :class:`TBNResult` (for lost-track analysis).
     """
     r_, s_, t1, nx = scn.x.shape
     steps = t1 - 1
@@ -86,6 +95,11 @@ def run_tbn(scn: Scenario, strategies, weights: Tensor, init: NoiseParams, dyn: 
     counters = {"resample_events": torch.zeros(r_, c_, dtype=torch.long, device=device),
                 "degenerate_events": torch.zeros(r_, c_, dtype=torch.long, device=device),
                 "sigma_clamped": 0, "offmap_particles": 0, "filter_steps": steps * r_ * c_ * s_}
+    diag = {}
+    if diagnostics:
+        diag = {name: torch.empty(steps, r_, c_, s_, dtype=dtype, device=device)
+                for name in ("ess", "spread", "vel_se", "h_misfit", "p_mode_last")}
+        diag["resampled"] = torch.empty(steps, r_, c_, s_, dtype=torch.bool, device=device)
     it = range(1, steps + 1)
     if progress:
         from tqdm import tqdm
@@ -94,7 +108,10 @@ def run_tbn(scn: Scenario, strategies, weights: Tensor, init: NoiseParams, dyn: 
     for t in it:
         y = scn.y[:, None, :, t].expand(*bshape)
         eta = float(t) ** (-eta_exponent)
-        state, stats, info = rbpf_step(state, y, h, theta, dyn, gen, eta=eta, ess_threshold=ess_threshold)
+        if diagnostics:
+            diag["ess"][t - 1] = ess(state.logw)
+        state, stats, info = rbpf_step(state, y, h, theta, dyn, gen, eta=eta, ess_threshold=ess_threshold,
+                                       regularise=regularise)
         counters["resample_events"] += info["resampled"].sum(-1)
         counters["degenerate_events"] += info["degenerate"].sum(-1)
         if t % 50 == 0:
@@ -108,6 +125,15 @@ def run_tbn(scn: Scenario, strategies, weights: Tensor, init: NoiseParams, dyn: 
         mu_tr[t - 1] = theta.mu
         sg_tr[t - 1] = theta.sigma
         pi_tr[t - 1] = theta.pi
+        if diagnostics:
+            w = torch.exp(state.logw)
+            dp = state.x[..., :2] - est[..., None, :2]
+            diag["spread"][t - 1] = torch.einsum("...i,...i->...", w, (dp * dp).sum(-1)).sqrt()
+            dv = est[..., 2:] - scn.x[:, None, :, t, 2:]
+            diag["vel_se"][t - 1] = (dv * dv).sum(-1)
+            diag["resampled"][t - 1] = info["resampled"]
+            diag["h_misfit"][t - 1] = h(est) - h(scn.x[:, None, :, t])
+            diag["p_mode_last"][t - 1] = torch.einsum("...i,...i->...", w, state.alpha[..., -1])
     if not (torch.isfinite(pos_se).all() and torch.isfinite(mu_tr).all() and torch.isfinite(sg_tr).all()):
         raise FloatingPointError("non-finite estimate in run_tbn (this is a bug: weights are kept in the log domain)")
-    return TBNResult(pos_se, mu_tr, sg_tr, pi_tr, counters)
+    return TBNResult(pos_se, mu_tr, sg_tr, pi_tr, counters, diag)

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from .filter import LinearGaussianDynamics
 from .jmnls import NoiseParams, simulate_modes
+from ..streams import Streams, randn
 
 
 @dataclass
@@ -145,8 +146,11 @@ class Scenario:
 
 
 def simulate(terrain: TerrainMap, truth: NoiseParams, dyn: LinearGaussianDynamics, *, runs: int, start: Tensor,
-             v0: Tensor, spacing: float, steps: int, gen: torch.Generator) -> Scenario:
+             v0: Tensor, spacing: float, steps: int, gen: torch.Generator | Streams) -> Scenario:
     """Simulate ``runs`` independent flights of the 4-aircraft formation over ``terrain``.
+
+    With ``gen`` a :class:`~dslearn.streams.Streams` over ``(runs,)``, every run's truth, modes and
+    measurement noise come from that run's own generator (the same run gives the same flight in any batch).
 
     Args:
         truth: true noise parameters (unbatched, K modes).
@@ -162,10 +166,12 @@ def simulate(terrain: TerrainMap, truth: NoiseParams, dyn: LinearGaussianDynamic
     s = off.shape[0]
     x0 = torch.cat([start + off, v0.expand(s, 2)], -1)  # (S, 4)
     x = [x0.expand(runs, s, 4).clone()]
-    for _ in range(steps):
-        x.append(dyn.sample(x[-1], gen))
+    w = randn((runs, steps, s, dyn.Q.shape[0]), gen, dtype=dtype, device=device)  # driving noise, all steps
+    gw = (w @ dyn.chol_q.T) @ dyn.G.T  # (R, T, S, 4)
+    for t in range(steps):
+        x.append(x[-1] @ dyn.F.T + gw[:, t])
     x = torch.stack(x, 2)  # (R, S, T+1, 4)
     r = simulate_modes(truth.pi, (runs, s), steps, gen)
-    eps = torch.randn(runs, s, steps + 1, generator=gen, dtype=dtype, device=device)
+    eps = randn((runs, s, steps + 1), gen, dtype=dtype, device=device)
     y = terrain(x) + truth.mu[r] + truth.sigma[r] * eps
     return Scenario(x, r, y, terrain)

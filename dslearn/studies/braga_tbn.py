@@ -7,9 +7,17 @@ measurements. It returns a tidy DataFrame with
 
 * run-level metrics (``time_s = -1``): ``pos_rms`` (steady-state window), ``pos_rms_first5s``, ``mu_rms``,
   ``sigma_rms``, ``pi_rms`` (steady-state window, over nodes and modes), ``throughput_kBps`` (Table II),
-  ``resample_rate``, ``degenerate_events``;
+  ``pos_rms_worst_node`` (largest per-node steady-state position RMS), ``pos_err_max`` (largest position error
+  of any node at any step), ``lost_nodes`` / ``lost_track`` (nodes / 0-1 flag with a steady-state position RMS
+  above ``task.lost_track_m``), ``resample_rate``, ``degenerate_events``;
 * time series (``time_s >= 0``, node-averaged): ``pos_se_t``, ``mu_se_t``, ``sigma_se_t``, ``pi_se_t``
   (squared errors averaged over nodes/modes) and the estimates ``mu_k``, ``sigma_k``, ``pi_kk`` for Fig. 4.
+
+Every Monte Carlo run draws its truth and measurements from its own random stream (seed, run index) and its
+filters from (seed, run index) (``task.filter_streams=common``: common random numbers for all strategies) or
+(seed, run index, strategy) (``independent``), so a run's result never depends on ``task.mc_batch``,
+``task.workers`` or the other runs and strategies (:mod:`dslearn.streams`). ``trace_runs(cfg, episodes)``
+re-runs any subset of runs with per-step diagnostics for lost-track analysis.
 
 ``report(...)`` writes Table II (``braga_tbn_table2.md/.csv``) and Figs 3-6 as PNGs.
 """
@@ -29,8 +37,9 @@ from omegaconf import DictConfig, OmegaConf
 from ..errors import ConfigError, check_choice, check_positive
 from ..rbpf.cooperation import network_adjacency, parse_strategy, throughput_bytes_per_step, weight_matrix
 from ..rbpf.jmnls import make_params, params_dim, stats_dim
+from ..streams import Streams
 from ..rbpf.tbn import run_tbn
-from ..rbpf.terrain import cv_model, make_terrain, simulate
+from ..rbpf.terrain import Scenario, cv_model, make_terrain, simulate
 
 PAPER_THROUGHPUT = {"noncooperative": 0.0, "centralised": 4.5, "consensus_1": 4.7, "consensus_5": 23.5,
                     "consensus_10": 46.9}
@@ -130,6 +139,12 @@ def _validate(cfg: DictConfig) -> dict:
     check_positive("task.bytes_per_float", p["bytes_per_float"])
     p["kilobyte"] = int(_get(cfg, "task.kilobyte", 1024))
     check_choice("task.kilobyte", p["kilobyte"], [1000, 1024])
+    p["regularise"] = float(_get(cfg, "task.resampling.regularise", 0.0))
+    check_positive("task.resampling.regularise", p["regularise"], strict=False)
+    p["filter_streams"] = _get(cfg, "task.filter_streams", "common")
+    check_choice("task.filter_streams", p["filter_streams"], ["common", "independent"])
+    p["lost_track_m"] = float(_get(cfg, "task.lost_track_m", 15.0))
+    check_positive("task.lost_track_m", p["lost_track_m"])
     p["record_every"] = int(_get(cfg, "task.record_every", 10))
     check_positive("task.record_every", p["record_every"])
     p["zoom_s"] = float(_get(cfg, "task.zoom_s", 5.0))
@@ -146,22 +161,49 @@ def _worker_init() -> None:
     torch.set_num_threads(1)
 
 
+def _simulate_and_filter(job: dict, episodes: list[int], diagnostics: bool = False, nodes: list[int] | None = None):
+    """Truth, measurements and all strategies' filters for the Monte Carlo runs ``episodes`` (one batch).
+    ``nodes``: filter only these aircraft (non-cooperative strategies only; for diagnosis)."""
+    p, terrain, truth, truth_dyn, filt_dyn = job["p"], job["terrain"], job["truth"], job["truth_dyn"], job["filt_dyn"]
+    seed, device, strategies = job["seed"], torch.device(job["device"]), p["strategies"]
+    nr = len(episodes)
+    # independent Monte Carlo runs: run `ep` draws its truth and measurements from the stream (seed, "truth", ep)
+    # and each strategy's filter from (seed, "filter", ep) (task.filter_streams=common: every strategy its own
+    # generator with that same seed, i.e. common random numbers) or (seed, "filter", ep, strategy) (independent),
+    # whatever the batch, worker or strategy list
+    common = p["filter_streams"] == "common"
+    truth_gen = Streams.from_keys([(seed, "truth", ep) for ep in episodes], (nr,), device=device)
+    filt_gen = Streams.from_keys([(seed, "filter", ep) if common else (seed, "filter", ep, sname)
+                                  for ep in episodes for sname in strategies], (nr, len(strategies)), device=device)
+    scn = simulate(terrain, truth, truth_dyn, runs=nr, start=torch.tensor(p["start"]), v0=torch.tensor(p["v0"]),
+                   spacing=p["formation_spacing"], steps=p["steps"], gen=truth_gen)
+    weights = p["weights"]
+    if nodes is not None:
+        if any(parse_strategy(sn)[0] != "noncooperative" for sn in strategies):
+            raise ConfigError("filtering a subset of the nodes needs task.strategies=[noncooperative] (the other "
+                              "strategies need the whole network)")
+        idx = torch.tensor(nodes, device=scn.x.device)
+        scn = Scenario(scn.x[:, idx], scn.r[:, idx], scn.y[:, idx], scn.terrain)
+        weights = torch.eye(len(nodes), dtype=weights.dtype)
+    res = run_tbn(scn, strategies, weights, p["init"], filt_dyn, num_particles=p["num_particles"], gen=filt_gen,
+                  burn_in=p["burn_in"], progress=job["progress"], diagnostics=diagnostics, **_filter_kwargs(p))
+    return scn, res
+
+
+def _filter_kwargs(p: dict) -> dict:
+    """The filter / EM options of :func:`dslearn.rbpf.tbn.run_tbn` from the validated config."""
+    return dict(eta_exponent=p["eta_exponent"], ess_threshold=p["ess_threshold"], sigma_floor=p["sigma_floor"],
+                init_mode=p["init_mode"], regularise=p["regularise"])
+
+
 def _run_batch(job: dict, c0: int, nr: int) -> list[dict]:
     """Simulate and filter Monte Carlo runs c0..c0+nr-1 (one batch); returns the tidy rows."""
-    p, terrain, truth, truth_dyn, filt_dyn = job["p"], job["terrain"], job["truth"], job["truth_dyn"], job["filt_dyn"]
-    seed, dtype, rec_idx, rec_time, thr, progress = (job["seed"], job["dtype"], job["rec_idx"], job["rec_time"],
-                                                     job["thr"], job["progress"])
-    device = torch.device(job["device"])
+    p, truth = job["p"], job["truth"]
+    dtype, rec_idx, rec_time, thr = job["dtype"], job["rec_idx"], job["rec_time"], job["thr"]
     strategies, k, steps, dt = p["strategies"], truth.k, p["steps"], p["dt"]
     n_ss = max(1, int(round(p["steady_state_s"] / dt)))
-    init = p["init"]
     frames = []
-    gen = torch.Generator(device=device).manual_seed(seed * 1_000_003 + 104_729 * (c0 // p["mc_batch"] + 1))
-    scn = simulate(terrain, truth, truth_dyn, runs=nr, start=torch.tensor(p["start"]), v0=torch.tensor(p["v0"]),
-                   spacing=p["formation_spacing"], steps=steps, gen=gen)
-    res = run_tbn(scn, strategies, p["weights"], init, filt_dyn, num_particles=p["num_particles"], gen=gen,
-                  eta_exponent=p["eta_exponent"], burn_in=p["burn_in"], ess_threshold=p["ess_threshold"],
-                  sigma_floor=p["sigma_floor"], init_mode=p["init_mode"], progress=progress)
+    scn, res = _simulate_and_filter(job, list(range(c0, c0 + nr)))
     if res.counters["offmap_particles"]:
         warnings.warn(f"braga_tbn: {res.counters['offmap_particles']} particle positions fell outside the terrain "
                       "map (clamped to its border); enlarge task.terrain.size_m")
@@ -169,12 +211,17 @@ def _run_batch(job: dict, c0: int, nr: int) -> list[dict]:
     sg_err = (res.sigma - truth.sigma) ** 2
     pi_err = (res.pi.diagonal(dim1=-2, dim2=-1) - truth.pi.diagonal()) ** 2
     ss = slice(steps - n_ss, steps)
+    node_rms = res.pos_se[ss].mean(0).sqrt()  # (R, C, S) steady-state position RMS of every node
     scal = {
         "pos_rms": res.pos_se[ss].mean((0, 3)).sqrt(),
         "pos_rms_first5s": res.pos_se[: max(1, int(round(5.0 / dt)))].mean((0, 3)).sqrt(),
         "mu_rms": mu_err[ss].mean((0, 3, 4)).sqrt(),
         "sigma_rms": sg_err[ss].mean((0, 3, 4)).sqrt(),
         "pi_rms": pi_err[ss].mean((0, 3, 4)).sqrt(),
+        "pos_rms_worst_node": node_rms.amax(-1),
+        "pos_err_max": res.pos_se.amax((0, 3)).sqrt(),
+        "lost_nodes": (node_rms > p["lost_track_m"]).sum(-1).to(dtype),
+        "lost_track": (node_rms > p["lost_track_m"]).any(-1).to(dtype),
         "resample_rate": res.counters["resample_events"].to(dtype) / (steps * 4),
         "degenerate_events": res.counters["degenerate_events"].to(dtype),
     }  # each (R, C)
@@ -206,8 +253,8 @@ def _run_batch(job: dict, c0: int, nr: int) -> list[dict]:
     return frames
 
 
-def run(cfg: DictConfig) -> pd.DataFrame:
-    """Run the study (see module docstring). Returns the tidy results table."""
+def _setup(cfg: DictConfig) -> dict:
+    """Validate the config and build everything the MC batches share (terrain, models, recording grid)."""
     p = _validate(cfg)
     device = torch.device(_get(cfg, "device", "cpu"))
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -219,30 +266,87 @@ def run(cfg: DictConfig) -> pd.DataFrame:
 
     tgen = torch.Generator(device=device).manual_seed(seed * 7919 + p["terrain_seed_offset"] + 17)
     terrain = make_terrain(**p["terrain"], gen=tgen, **kw)
-    truth, init = p["truth"], p["init"]
+    truth = p["truth"]
     truth = type(truth)(truth.mu.to(**kw), truth.sigma.to(**kw), truth.pi.to(**kw))
     truth_dyn = cv_model(p["dt"], max(p["truth_process_noise"], 1e-12), p["jitter"], **kw)
     filt_dyn = cv_model(p["dt"], p["process_noise"], p["jitter"], kernel_dtype=p["kernel_dtype"], **kw)
-    strategies = p["strategies"]
     k = truth.k
     steps, dt = p["steps"], p["dt"]
-    n_ss = max(1, int(round(p["steady_state_s"] / dt)))
     n_zoom = int(round(p["zoom_s"] / dt))
     rec = [t for t in range(1, steps + 1) if t <= n_zoom or t % p["record_every"] == 0]
     rec_idx = torch.tensor([t - 1 for t in rec], device=device)
     rec_time = [t * dt for t in rec]
-
     thr = {}
-    for sname in strategies:
+    for sname in p["strategies"]:
         b = throughput_bytes_per_step(sname, p["adj"], stats_dim(k), params_dim(k), fusion_centre=p["fusion_centre"],
                                       bytes_per_float=p["bytes_per_float"])
         thr[sname] = b / dt / p["kilobyte"]
+    return dict(p=p, terrain=terrain, truth=truth, truth_dyn=truth_dyn, filt_dyn=filt_dyn, seed=seed,
+                device=str(device), dtype=dtype, rec_idx=rec_idx, rec_time=rec_time, thr=thr, progress=progress)
 
+
+def trace_runs(cfg: DictConfig, episodes, diagnostics: bool = True, nodes: list[int] | None = None):
+    """Simulate and filter the given Monte Carlo runs (any subset, any order: each run's result depends only on
+    (seed, run index, strategy)) and return ``(scenario, TBNResult)`` with the per-step diagnostics of
+    :func:`dslearn.rbpf.tbn.run_tbn` (ESS, particle spread, velocity error, ...) for lost-track analysis.
+    ``nodes``: filter only these aircraft (noncooperative only); the scenario is restricted to them."""
+    job = _setup(cfg)
+    return _simulate_and_filter(job, list(episodes), diagnostics=diagnostics, nodes=nodes)
+
+
+def terrain_gradient(scn: Scenario, step_m: float = 5.0) -> torch.Tensor:
+    """|grad h| of the map at the true positions by central differences. -> (R, S, T) (t = 1..T)."""
+    p = scn.x[..., 1:, :2]
+    ex = torch.tensor([step_m, 0.0], dtype=p.dtype, device=p.device)
+    ey = torch.tensor([0.0, step_m], dtype=p.dtype, device=p.device)
+    h = scn.terrain
+    gx = (h(p + ex) - h(p - ex)) / (2 * step_m)
+    gy = (h(p + ey) - h(p - ey)) / (2 * step_m)
+    return torch.sqrt(gx * gx + gy * gy)
+
+
+def _screen_chunk(cfg_yaml: str, episodes: list[int], nodes: list[int] | None) -> list[tuple]:
+    torch.set_num_threads(1)
+    cfg = OmegaConf.create(cfg_yaml)
+    job = _setup(cfg)
+    p, truth = job["p"], job["truth"]
+    scn, res = _simulate_and_filter(job, episodes, nodes=nodes)
+    n_ss = max(1, int(round(p["steady_state_s"] / p["dt"])))
+    node_rms = res.pos_se[-n_ss:].mean(0).sqrt()  # (R, C, S)
+    err_max = res.pos_se.amax(0).sqrt()
+    mu = (res.mu[-n_ss:] - truth.mu).pow(2).mean((0, -1)).sqrt()  # (R, C, S) per-node mu RMS
+    out = []
+    for ri, ep in enumerate(episodes):
+        for ci, sname in enumerate(p["strategies"]):
+            out.append((ep, sname, node_rms[ri, ci].tolist(), err_max[ri, ci].tolist(), mu[ri, ci].tolist()))
+    return out
+
+
+def screen_lost_tracks(cfg: DictConfig, episodes, nodes: list[int] | None = None, chunk: int = 10) -> list[tuple]:
+    """Per-node steady-state position RMS, largest position error and mu RMS of many runs, in ``task.workers``
+    processes (chunks of ``chunk`` runs). Returns ``(episode, strategy, node_rms, err_max, mu_rms)`` tuples."""
+    p = _validate(cfg)
+    episodes = list(episodes)
+    chunks = [episodes[i:i + chunk] for i in range(0, len(episodes), chunk)]
+    text = OmegaConf.to_yaml(cfg, resolve=True)
+    if p["workers"] <= 1 or len(chunks) == 1:
+        parts = [_screen_chunk(text, c, nodes) for c in chunks]
+    else:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+
+        with cf.ProcessPoolExecutor(min(p["workers"], len(chunks)), mp_context=mp.get_context("spawn")) as ex:
+            parts = list(ex.map(_screen_chunk, [text] * len(chunks), chunks, [nodes] * len(chunks)))
+    return [row for part in parts for row in part]
+
+
+def run(cfg: DictConfig) -> pd.DataFrame:
+    """Run the study (see module docstring). Returns the tidy results table."""
+    job = _setup(cfg)
+    p, device = job["p"], torch.device(job["device"])
     frames = []
     t_start = time.perf_counter()
     batches = [(c0, min(p["mc_batch"], p["mc_runs"] - c0)) for c0 in range(0, p["mc_runs"], p["mc_batch"])]
-    job = dict(p=p, terrain=terrain, truth=truth, truth_dyn=truth_dyn, filt_dyn=filt_dyn, seed=seed,
-               device=str(device), dtype=dtype, rec_idx=rec_idx, rec_time=rec_time, thr=thr, progress=progress)
     workers = min(p["workers"], len(batches)) if device.type == "cpu" else 1
     if workers <= 1:
         for c0, nr in batches:
@@ -307,6 +411,19 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     deg = res[res.metric == "degenerate_events"].groupby("strategy")["value"].sum()
     tab["degenerate_events"] = deg
     tab["mc_runs"] = n_runs
+    run_level = res[res.time_s == -1.0]
+    med = {m: run_level[run_level.metric == m].groupby("strategy")["value"].median()
+           for m in ("pos_rms", "mu_rms", "sigma_rms", "pi_rms")}
+    for m, v in med.items():
+        tab[f"{m}_median"] = v
+    has_lost = "lost_track" in set(run_level.metric)  # results of older code have no lost-track metrics
+    if has_lost:
+        lost = run_level[run_level.metric == "lost_track"].groupby("strategy")["value"].sum()
+        tab["lost_track_runs"] = lost
+        kept = run_level[run_level.metric == "lost_track"].set_index(["strategy", "episode"])["value"] == 0
+        mu = run_level[run_level.metric == "mu_rms"].set_index(["strategy", "episode"])["value"]
+        mu_kept = mu[kept.reindex(mu.index).fillna(False).astype(bool)]
+        tab["mu_rms_tracking_runs"] = mu_kept.groupby("strategy").apply(lambda v: math.sqrt((v ** 2).mean()))
     tab.index.name = "strategy"
     tab = tab.reset_index()
     tab.to_csv(out_dir / "braga_tbn_table2.csv", index=False)
@@ -321,6 +438,19 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
         md.append(f"| {r.strategy} | {r.pos_rms:.2f} | {r.pos_rms_first5s:.2f} | {r.mu_rms:.3f} | {r.sigma_rms:.3f} | "
                   f"{r.pi_rms:.4f} | {r.throughput_kBps:.2f} | {r.paper_throughput_kBps:.1f} | "
                   f"{int(r.degenerate_events)} | {int(r.mc_runs)} |")
+    md += ["", "Per-run medians and lost tracks (a run has lost track when some node's steady-state position RMS "
+           "exceeds `task.lost_track_m`):", "",
+           "| strategy | median pos RMS [m] | median mu RMS [m] | median sigma RMS [m] | median pi RMS | "
+           "lost-track runs | mu RMS without them [m] |", "|---|---|---|---|---|---|---|"]
+    for _, r in tab.iterrows():
+        lost_s = f"{int(r.lost_track_runs)}" if has_lost else "-"
+        kept_s = f"{r.mu_rms_tracking_runs:.3f}" if has_lost and not math.isnan(r.mu_rms_tracking_runs) else "-"
+        md.append(f"| {r.strategy} | {r.pos_rms_median:.2f} | {r.mu_rms_median:.3f} | {r.sigma_rms_median:.3f} | "
+                  f"{r.pi_rms_median:.4f} | {lost_s} | {kept_s} |")
+    if {"centralised", "consensus_10"} <= set(tab.strategy):
+        mu_rms = tab.set_index("strategy")["mu_rms"]
+        md += ["", f"Acceptance ratio consensus_10 / centralised mu RMS: "
+               f"{mu_rms['consensus_10'] / mu_rms['centralised']:.2f}"]
     text = "\n".join(md) + "\n"
     (out_dir / "braga_tbn_table2.md").write_text(text)
 
@@ -445,6 +575,107 @@ def benchmark(steps: int = 200, mc_batch: int = 1, num_particles: int = 300, dev
     return out
 
 
-if __name__ == "__main__":  # python -m dslearn.studies.braga_tbn  -> benchmark
+def _cli_cfg(overrides: list[str]) -> DictConfig:
+    task = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "task" / "braga_tbn.yaml")
+    cfg = OmegaConf.create({"seed": 0, "device": "cpu", "dtype": "float64", "progress": False, "task": task})
+    return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+
+
+def _episodes(text: str) -> list[int]:
+    out = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out.extend(range(int(a), int(b) + 1) if b else [int(a)])
+    return out
+
+
+def _trace_report(cfg: DictConfig, episodes: list[int], nodes: list[int] | None, show: list[int] | None) -> str:
+    """Per-node summary and, for lost nodes (or ``show``), a time table of the diagnostics."""
+    p = _validate(cfg)
+    scn, res = trace_runs(cfg, episodes, nodes=nodes)
+    dg, grad = res.diagnostics, terrain_gradient(scn)
+    n_ss = max(1, int(round(p["steady_state_s"] / p["dt"])))
+    err = res.pos_se.sqrt()  # (T, R, C, S)
+    spread = dg["spread"]
+    g = grad.permute(2, 0, 1)[:, :, None, :].expand_as(err)  # (T, R, C, S)
+    flat = g < 0.2
+    lines = [f"error/spread RMS ratio: all {(err.pow(2).mean() / spread.pow(2).mean()).sqrt():.2f}, "
+             f"|grad h| < 0.2: {(err[flat].pow(2).mean() / spread[flat].pow(2).mean()).sqrt():.2f}; "
+             f"steps with error > 3 x spread: {(err > 3 * spread).double().mean():.3f}"]
+    node_ids = nodes if nodes is not None else list(range(err.shape[-1]))
+    steps = err.shape[0]
+    times = list(range(9, min(steps, 400), 20)) + list(range(499, steps, 250))
+    for ri, ep in enumerate(episodes):
+        for ci, sname in enumerate(p["strategies"]):
+            ss = err[-n_ss:, ri, ci].pow(2).mean(0).sqrt()
+            lines.append(f"run {ep} {sname}: node steady-state RMS [m] {[round(v, 1) for v in ss.tolist()]}, "
+                         f"max error {err[:, ri, ci].max():.1f} m")
+            for si, node in enumerate(node_ids):
+                if not (ss[si] > p["lost_track_m"] or (show is not None and node in show)):
+                    continue
+                mu, sg, pi = res.mu[:, ri, ci, si], res.sigma[:, ri, ci, si], res.pi[:, ri, ci, si]
+                r_last = (scn.r[ri, si, 1:] == mu.shape[-1] - 1).to(err.dtype)
+                lines.append(f"  node {node}: t[s] | error spread vel.err [m, m, m/s] | ESS | |grad h| | "
+                             f"h(est)-h(true) [m] | P(last mode) (true) | mu sigma pi_kk")
+                for t in times:
+                    w = slice(max(0, t - 9), t + 1)
+                    par = " ".join(f"{v:6.2f}" for v in (*mu[t].tolist(), *sg[t].tolist(),
+                                                         *pi[t].diagonal().tolist()))
+                    lines.append(f"  {(t + 1) * p['dt']:6.2f} | {err[t, ri, ci, si]:6.1f} {spread[t, ri, ci, si]:5.1f} "
+                                 f"{dg['vel_se'][t, ri, ci, si].sqrt():5.1f} | {dg['ess'][t, ri, ci, si]:4.0f} | "
+                                 f"{grad[ri, si, t]:.2f} | {dg['h_misfit'][w, ri, ci, si].mean():6.2f} | "
+                                 f"{dg['p_mode_last'][w, ri, ci, si].mean():.2f} ({r_last[w].mean():.2f}) | {par}")
+    return "\n".join(lines)
+
+
+def _screen_report(cfg: DictConfig, episodes: list[int], nodes: list[int] | None) -> str:
+    p = _validate(cfg)
+    rows = screen_lost_tracks(cfg, episodes, nodes=nodes)
+    lines = []
+    for sname in p["strategies"]:
+        r = [row for row in rows if row[1] == sname]
+        worst = torch.tensor([max(row[2]) for row in r], dtype=torch.float64)
+        emax = torch.tensor([max(row[3]) for row in r], dtype=torch.float64)
+        mu = torch.tensor([sum(v * v for v in row[4]) / len(row[4]) for row in r], dtype=torch.float64).sqrt()
+        q = emax.quantile(torch.tensor([0.5, 0.9], dtype=torch.float64)).tolist()
+        lines.append(f"{sname}: {len(r)} runs, lost track (worst node > {p['lost_track_m']:g} m) "
+                     f"{int((worst > p['lost_track_m']).sum())}; worst-node steady-state RMS median {worst.median():.2f} m; "
+                     f"max error median {q[0]:.1f} m, 90% {q[1]:.1f} m, max {emax.max():.1f} m; mu RMS "
+                     f"{mu.pow(2).mean().sqrt():.3f} m (median {mu.median():.3f} m)")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m dslearn.studies.braga_tbn [benchmark | trace RUNS | screen RUNS] [--nodes 0,1] [task.x=y ...]``
+
+    * ``benchmark`` (default): time the filter step and extrapolate the cost of the protocol;
+    * ``trace 41,64``: re-run these Monte Carlo runs with diagnostics and print per-node summaries, the filter's
+      calibration (error / particle spread) and a time table for every lost node (``--show 0`` adds node 0);
+    * ``screen 0-99``: lost-track count and error statistics over many runs (``--nodes 0`` filters only node 0,
+      ``task.strategies=[noncooperative]`` needed for that).
+    Runs are numbered as in the study (same seed -> the same flights and filters)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m dslearn.studies.braga_tbn", description=main.__doc__.split("\n")[0])
+    ap.add_argument("command", nargs="?", default="benchmark", choices=["benchmark", "trace", "screen"])
+    ap.add_argument("runs", nargs="?", default="0", help="run indices, e.g. 41,64 or 0-99")
+    ap.add_argument("--nodes", default=None, help="filter only these nodes (noncooperative), e.g. 0")
+    ap.add_argument("--show", default=None, help="trace: also print the time table of these nodes")
+    ap.add_argument("overrides", nargs="*", help="task.x=y config overrides")
+    a, rest = ap.parse_known_args(argv)
+    overrides = list(a.overrides) + [r for r in rest if "=" in r]
     torch.set_num_threads(1)
-    benchmark()
+    if a.command == "benchmark":
+        benchmark()
+        return
+    cfg = _cli_cfg(overrides)
+    nodes = [int(v) for v in a.nodes.split(",")] if a.nodes else None
+    if a.command == "trace":
+        show = [int(v) for v in a.show.split(",")] if a.show else None
+        print(_trace_report(cfg, _episodes(a.runs), nodes, show))
+    else:
+        print(_screen_report(cfg, _episodes(a.runs), nodes))
+
+
+if __name__ == "__main__":  # python -m dslearn.studies.braga_tbn [benchmark | trace RUNS | screen RUNS]
+    main()
