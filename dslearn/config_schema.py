@@ -39,7 +39,20 @@ from omegaconf.errors import OmegaConfBaseException
 
 from .errors import ConfigError, check_finite, check_choice, check_positive
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+
+
+def _conf_dir() -> Path:
+    """The packaged Hydra configs (``dslearn.conf``; in a source checkout, the top-level ``conf/``)."""
+    from importlib.resources import files
+
+    return Path(str(files("dslearn.conf")))
+
+
+#: the packaged config folder; user config folders join it through ``hydra.searchpath``
+CONF_DIR = _conf_dir()
+#: every config folder the current command composes from: CONF_DIR, then the user's ``hydra.searchpath``
+#: folders (``dslearn-run`` extends this list from the command line before its up-front checks)
+CONF_DIRS: list[Path] = [CONF_DIR]
 CORE_TASKS = ("yu", "yu_faults")
 
 #: the registry of study entries: ``task.name`` -> ``task.entry``. ``dslearn-run`` calls only
@@ -261,7 +274,7 @@ def _check_schema(node: Any, schema: type, prefix: str) -> DictConfig:
 
 
 def known_root_keys() -> set[str]:
-    groups = {p.name for p in CONF_DIR.iterdir() if p.is_dir()} if CONF_DIR.is_dir() else set()
+    groups = {p.name for d in CONF_DIRS if d.is_dir() for p in d.iterdir() if p.is_dir()}
     return {f.name for f in fields(RootSchema)} | {"task", "hydra", "noise"} | groups | set(GROUP_SCHEMAS)
 
 

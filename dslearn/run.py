@@ -48,6 +48,7 @@ import pandas as pd  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from . import __version__  # noqa: E402
+from .config_schema import CONF_DIR as _CONF_DIR, CONF_DIRS  # noqa: E402
 from .errors import ConfigError, DataFormatError  # noqa: E402
 from .io import (  # noqa: E402
     META_FILE,
@@ -61,7 +62,7 @@ from .io import (  # noqa: E402
 )
 
 log = logging.getLogger("dslearn.run")
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+CONF_DIR = str(_CONF_DIR)
 STATUS_FILE = "status.json"
 PROG = "dslearn-run"
 
@@ -461,12 +462,28 @@ def _check_output_dir(key: str, value: str) -> None:
 
 
 def _group_options(group: str) -> list[str]:
-    d = Path(CONF_DIR) / group
-    return sorted(p.stem for p in d.glob("*.yaml")) if d.is_dir() else []
+    return sorted({p.stem for d in CONF_DIRS for p in (d / group).glob("*.yaml")})
 
 
 def _is_group(key: str) -> bool:
-    return (Path(CONF_DIR) / key).is_dir() or key == "schema"
+    return any((d / key).is_dir() for d in CONF_DIRS) or key == "schema"
+
+
+def _user_search_dirs(value) -> list[Path]:
+    """The folders of a ``hydra.searchpath=[...]`` override (``file://`` or plain paths; ``pkg://`` entries are
+    packages, not folders, and are left to Hydra)."""
+    items = value if isinstance(value, (list, tuple)) else [value]
+    out = []
+    for item in items:
+        s = str(item)
+        if s.startswith("pkg://"):
+            continue
+        d = Path(s[len("file://"):] if s.startswith("file://") else s).expanduser()
+        if not d.is_dir():
+            raise ConfigError(f"hydra.searchpath: {s} is not a folder (give config folders as file:///abs/path "
+                              "or pkg://package.module)")
+        out.append(d.resolve())
+    return out
 
 
 def _check_group_option(group: str, option) -> None:
@@ -768,6 +785,9 @@ def precheck(argv: list[str]) -> str | None:
                 msg = _hydra_message(e).split(" See https://hydra.cc")[0]
                 return (f"{line}: not a valid override ({msg}); write key=value, group=option, +key=value "
                         "to add, or key=a,b with -m to sweep")
+        for o in parsed:  # user config folders first: their groups and options count in the checks below
+            if o.key_or_group == "hydra.searchpath" and not o.is_delete():
+                CONF_DIRS.extend(d for d in _user_search_dirs(o.value()) if d not in CONF_DIRS)
         for o in parsed:
             if o.key_or_group in ("hydra.run.dir", "hydra.sweep.dir"):
                 _check_output_dir(o.key_or_group, str(o.value()))

@@ -28,12 +28,13 @@ import torch
 from omegaconf import DictConfig
 
 from .data.ethucy import ALL_SCENES, load_scene, split_scene, windows
+from .config_schema import CONF_DIR as _CONF_DIR
 from .errors import ConfigError, check_choice
 from .io import atomic_write_csv
 from .models.lstm import SCHEDULE_KEYS, SocialLSTM, schedule_from_config, train_lstm
 
 log = logging.getLogger("dslearn.train_lstm")
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+CONF_DIR = str(_CONF_DIR)
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 #: keys of the ``lstm`` group (unknown keys are a ConfigError)
 LSTM_GROUP_KEYS = ("embed", "hidden", "obs_len", "pred_len", "pooling", "grid", "neighbourhood", "noise_std") + SCHEDULE_KEYS

@@ -34,6 +34,7 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from ..config_schema import CONF_DIR
 from ..errors import ConfigError, check_choice, check_positive
 from ..rbpf.cooperation import network_adjacency, parse_strategy, throughput_bytes_per_step, weight_matrix
 from ..rbpf.jmnls import make_params, params_dim, stats_dim
@@ -534,7 +535,7 @@ def benchmark(steps: int = 200, mc_batch: int = 1, num_particles: int = 300, dev
     import os
 
     workers = workers or max(1, min(2, os.cpu_count() or 1))
-    task = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "task" / "braga_tbn.yaml")
+    task = OmegaConf.load(CONF_DIR / "task" / "braga_tbn.yaml")
     over = {"mc_runs": mc_batch, "mc_batch": mc_batch, "workers": 1, "steps": steps, "num_particles": num_particles,
             "steady_state_s": steps * float(task.dt) / 2, "backward_kernel": {"dtype": kernel_dtype}}
     if strategies is not None:
@@ -576,7 +577,7 @@ def benchmark(steps: int = 200, mc_batch: int = 1, num_particles: int = 300, dev
 
 
 def _cli_cfg(overrides: list[str]) -> DictConfig:
-    task = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "task" / "braga_tbn.yaml")
+    task = OmegaConf.load(CONF_DIR / "task" / "braga_tbn.yaml")
     cfg = OmegaConf.create({"seed": 0, "device": "cpu", "dtype": "float64", "progress": False, "task": task})
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
 

@@ -152,7 +152,9 @@ class YuStudy:
         """Compose the default configuration (``conf/``) with a few options, without Hydra's app."""
         from hydra import compose, initialize_config_dir
 
-        conf_dir = str(Path(__file__).resolve().parents[2] / "conf")
+        from ..config_schema import CONF_DIR
+
+        conf_dir = str(CONF_DIR)
         ov = [f"model={model}", f"consensus={consensus}"]
         for k, v in overrides.items():
             key = k if "." in k else {"train_episodes": "data.train_episodes", "test_episodes": "data.test_episodes"}.get(k, k)

@@ -37,6 +37,7 @@ from ..faults import (
     apply_node_failures,
     node_failure_schedule,
 )
+from ..config_schema import CONF_DIR
 from ..filters.information import GATE_STATS
 from ..sim.scenario import episode_streams
 from ..streams import Streams
@@ -44,7 +45,7 @@ from ..tracker import initial_belief, track, tracking_metrics
 from .yu import DTYPES, _resolve_device, _to, build_motion_model, build_network, build_observation, build_scenario
 
 log = logging.getLogger(__name__)
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = CONF_DIR
 
 
 @dataclass
