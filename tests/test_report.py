@@ -132,3 +132,55 @@ def test_report_of_a_single_run_dir(make_cfg, tmp_path):
     assert (tmp_path / "r" / "figure.png").is_file()
     written = {p.name for p in report.written}
     assert {"report.md", "summary.csv", "figure.png", "yu_table1.csv", "yu_table1.md"} <= written
+
+
+def _two_sensor_results():
+    """Two sensors, three episodes, one comm node; lin individual and gp_increment hybrid."""
+    rows = []
+    vals = {  # (model, consensus, omega, metric, node) -> per-episode values
+        ("lin", "individual", "-", "track_err", "sensor1"): [0.10, 0.20, 0.60],
+        ("lin", "individual", "-", "track_err", "sensor2"): [0.30, 0.30, 0.90],
+        ("lin", "individual", "-", "pred_err", "sensor1"): [1.0, 1.2, 1.4],
+        ("lin", "individual", "-", "pred_err", "sensor2"): [1.0, 1.2, 1.4],
+        ("gp_increment", "hybrid", "one", "track_err", "sensor1"): [0.05, 0.07, 0.09],
+        ("gp_increment", "hybrid", "one", "track_err", "sensor2"): [0.06, 0.06, 0.12],
+        ("gp_increment", "hybrid", "one", "pred_err", "sensor1"): [0.2, 0.4, 0.9],
+        ("gp_increment", "hybrid", "one", "pred_err", "sensor2"): [0.1, 0.3, 0.2],
+    }
+    for (model, cons, om, metric, node), v in vals.items():
+        for ep, x in enumerate(v):
+            rows.append(dict(study="t", task="yu", seed=0, model=model, consensus=cons, omega=om,
+                             iterations=4 if cons != "individual" else "-", weights="uniform", train_episodes=5,
+                             test_episodes=3, train_seen=5, node=node, node_kind="sensor", episode=ep,
+                             metric=metric, value=x))
+        rows.append({**rows[-1], "node": "comm1", "node_kind": "comm", "value": 99.0})
+    return pd.DataFrame(rows)
+
+
+def test_paper_shaped_cells_by_hand():
+    """One cell of Table I and one of Table II against hand computation: the Average row's mean is the mean of
+    the sensors' means, its ± the mean of the sensors' sample standard deviations (ddof 1), not the spread of
+    the sensor-averaged error (kept as std_of_sensor_avg); communication nodes never enter it."""
+    from dslearn.plotting.yu import table_prediction, table_tracking
+
+    s = summarize(_two_sensor_results())
+    tab = table_tracking(s).set_index(["fusion", "node"])
+    # lin individual: sensor1 mean 0.3, std sqrt(((-.2)^2 + (-.1)^2 + .3^2)/2) = sqrt(0.07); sensor2 mean 0.5,
+    # std sqrt((.04 + .04 + .16)/2) = sqrt(0.12)
+    m = (0.3 + 0.5) / 2
+    sd = (np.sqrt(0.07) + np.sqrt(0.12)) / 2
+    assert tab.loc[("individual", AVG_LABEL), "lin"] == f"{m:.2f} ± {sd:.2f}" == "0.40 ± 0.31"
+    # gp_increment hybrid: sensor1 0.07 ± 0.02, sensor2 0.08 ± sqrt(0.0012) -> 0.075 ± 0.0273
+    m = (0.07 + 0.08) / 2
+    sd = (0.02 + np.sqrt(((0.06 - 0.08) ** 2 * 2 + 0.04 ** 2) / 2)) / 2
+    assert tab.loc[("hybrid (ω=1), L=4", AVG_LABEL), "gp_increment"] == f"{m:.3f} ± {sd:.3f}" == "0.075 ± 0.027"
+    # the other spread: per-episode sensor average (0.2, 0.25, 0.75) -> std over episodes
+    avg_row = s[(s.node == "avg") & (s.model == "lin") & (s.metric == "track_err")].iloc[0]
+    assert avg_row["std_of_sensor_avg"] == pytest.approx(np.std([0.2, 0.25, 0.75], ddof=1))
+    pred = table_prediction(s).set_index("node")
+    # gp_increment con. pred: sensor1 0.5 ± sqrt(0.13), sensor2 0.2 ± 0.1
+    m = (0.5 + 0.2) / 2
+    sd = (np.sqrt(((0.2 - 0.5) ** 2 + (0.4 - 0.5) ** 2 + (0.9 - 0.5) ** 2) / 2) + 0.1) / 2
+    col = [c for c in pred.columns if c.startswith("gp_increment (con.")]
+    assert len(col) == 1 and pred.loc[AVG_LABEL, col[0]] == f"{m:.2f} ± {sd:.2f}"
+    assert pred.loc[AVG_LABEL, "lin"] == "1.20 ± 0.20"
