@@ -159,7 +159,7 @@ def _tiny_cfg(model_overrides):
     return cfg
 
 
-def test_study_runs_each_variant_and_large_window_equals_exact():
+def test_study_runs_each_variant_and_large_window_equals_exact(monkeypatch):
     from dslearn.models.gp import OnlineGP
     from dslearn.studies.yu import YuStudy
 
@@ -167,25 +167,44 @@ def test_study_runs_each_variant_and_large_window_equals_exact():
     win = YuStudy.from_config(_tiny_cfg({"variant": "window", "window": 1000})).run()
     assert (ref["value"] - win["value"]).abs().max() < 1e-9
     te_ref = ref[ref.metric == "track_err"]["value"].mean()
+    # what learning buys on these 4 + 3 episodes: the same study with no training episode
+    untrained = _tiny_cfg({})
+    untrained.data.train_episodes = 0
+    te_none = YuStudy.from_config(untrained).run().query("metric == 'track_err'")["value"].mean()
+    gain = te_none - te_ref
+    assert gain > 0.1 * te_ref, (te_none, te_ref)  # measured 0.1465 untrained vs 0.1268 exact (-13 %)
+    # record what the study feeds the sliding window, to check its final posterior independently
+    fed = []
+    orig_append = WindowGP.append
+
+    def recording_append(self, x, y, valid=None):
+        fed.append((x.clone(), y.clone(), None if valid is None else valid.clone()))
+        return orig_append(self, x, y, valid)
+
+    monkeypatch.setattr(WindowGP, "append", recording_append)
     for ov in ({"variant": "sgpr", "inducing": 16}, {"variant": "ssgp", "features": 50}, {"variant": "window", "window": 20}):
         study = YuStudy.from_config(_tiny_cfg(ov))
         df = study.run()
         assert df["value"].notna().all() and len(df) == len(ref)
         te = df[df.metric == "track_err"]["value"].mean()
-        # measured: SGPR +7 %, SSGP -5 %, window(20) +8 % against the exact GP on the same 4 + 3 episodes
-        assert abs(te - te_ref) < 0.25 * te_ref, (ov, te, te_ref)
-    # the window did slide (48 points appended, 20 kept), and its posterior at the end of the
-    # study is the exact GP of its last 20 points (the downdates lost nothing)
+        # each approximation keeps most of the exact GP's gain over no learning (a variant that
+        # learnt nothing would sit a whole gain away). Measured: SGPR +0.0036, SSGP -0.0016,
+        # window(20) +0.0065 against a gain of 0.0197; a window of 2 points is +0.0150 and fails.
+        assert abs(te - te_ref) < 0.5 * gain, (ov, te, te_ref, gain)
+    # the window did slide (48 points fed, 20 kept), and its posterior at the end of the study is
+    # the exact GP of the last 20 points the study fed it (the downdates lost nothing)
     gp = study.model.gp
-    assert gp.seen == 4 * 12 and gp.n == 20
+    assert len(fed) == gp.seen == 4 * 12 and gp.n == 20
     exact = OnlineGP(gp.num_nodes, 8, 8, float(gp.outputscale[0]) ** 0.5, float(gp.lengthscale[0]), float(gp.noise_var[0]) ** 0.5,
                      mean="identity", capacity=32)
-    for i in range(gp.n):
-        x = gp.X[:, i]
-        exact.append(x, gp.R[:, i] + x, gp.mask[:, i])
-    xq = torch.randn(gp.num_nodes, 5, 8, dtype=D, generator=torch.Generator().manual_seed(3)) + 4.0
+    for x, y, valid in fed[-20:]:
+        exact.append(x, y, valid)
+    g = torch.Generator().manual_seed(3)
+    xq = torch.stack([x for x, _, _ in fed[-20:]], 1)[:, ::4] + 0.3 * torch.randn(gp.num_nodes, 5, 8, dtype=D, generator=g)
     for a, b in zip(gp.predict(xq), exact.predict(xq)):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-9)
+    # near the data the posterior is informative, so the comparison is not prior against prior
+    assert (exact.predict(xq)[1] < 0.9 * float(gp.outputscale[0])).any()
 
 
 @pytest.mark.parametrize("variant,opts", [("window", dict(window=12)), ("sgpr", dict(inducing=10)), ("ssgp", dict(features=40))])

@@ -72,6 +72,26 @@ def test_completeness_marker_and_gather(tmp_path, make_cfg):
     assert len(loaded) == len(table)
 
 
+def _md_table(text, heading):
+    """The cells of the first markdown table after ``heading``: {(fusion, node, model): (mean, std)} as strings."""
+    lines = text[text.index(heading):].splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("|"))
+    rows = []
+    for line in lines[start:]:
+        if not line.startswith("|"):
+            break
+        rows.append([c.strip() for c in line.strip("|").split("|")])
+    head, body = rows[0], rows[2:]
+    assert head[:2] == ["fusion", "node"], head
+    out = {}
+    for r in body:
+        fusion = r[0].split()[0]
+        for model, cell in zip(head[2:], r[2:]):
+            mean_s, std_s = (c.strip() for c in cell.split("±"))
+            out[(fusion, r[1], model)] = (mean_s, std_s)
+    return out
+
+
 @pytest.fixture(scope="module")
 def basic_sweep(tmp_path_factory):
     d = tmp_path_factory.mktemp("basic")
@@ -94,7 +114,21 @@ def test_basic_sweep_one_table_and_report(basic_sweep):
     from dslearn.report import report
 
     text = report(basic_sweep)
-    assert "Table I" in text or "track_err" in text
+    # the Table I cells, recomputed from the gathered rows: per sensor mean ± std (ddof 1) over the 2 episodes;
+    # the sensor-average row as the paper forms it (mean of the sensors' means ± mean of their stds).
+    # Each printed cell must agree to half a unit of its last printed digit.
+    cells = _md_table(text, "### Tracking error")
+    sensors = ("sensor1", "sensor2", "sensor3", "sensor4")
+    assert sorted(cells) == sorted((c, n, m) for c in ("individual", "hybrid") for m in ("lin", "sfm")
+                                   for n in (*sensors, "sensor average"))
+    te = t[(t["metric"] == "track_err") & (t["node_kind"] == "sensor")]
+    for (cons, node, model), (mean_s, std_s) in cells.items():
+        g = te[(te["ov.consensus"] == cons) & (te["ov.model"] == model)]
+        per_node = g.groupby("node")["value"].agg(["mean", "std", "count"])
+        assert list(per_node.index) == list(sensors) and (per_node["count"] == 2).all()
+        ref = per_node.mean() if node == "sensor average" else per_node.loc[node]
+        for s, r in ((mean_s, ref["mean"]), (std_s, ref["std"])):
+            assert abs(float(s) - r) <= 0.5 * 10.0 ** -len(s.partition(".")[2]) + 1e-12, (cons, node, model, s, r)
     for f in ("summary.csv", "tables.md", "tables.tex", "report.md", "figure.png", "figure_data.csv"):
         assert (basic_sweep / f).is_file(), f
     assert "\\begin{tabular}" in (basic_sweep / "tables.tex").read_text()
