@@ -16,15 +16,20 @@ def check_choice(field: str, value, allowed) -> None:
         raise ConfigError(f"{field}={value!r} is not allowed; choose one of {allowed}")
 
 
-def check_positive(field: str, value, *, strict: bool = True, finite: bool = True) -> None:
-    """Raise :class:`ConfigError` unless ``value`` > 0 (or >= 0 when ``strict`` is False) and,
-    unless ``finite`` is False, finite (``inf`` would pass a range check that ``nan`` fails)."""
+def _number(field: str, value) -> float:
+    """``value`` as a float, or :class:`ConfigError` naming ``field`` (booleans are not numbers)."""
     if isinstance(value, bool):
         raise ConfigError(f"{field}={value!r} must be a number, not a boolean")
     try:
-        v = float(value)
+        return float(value)
     except (TypeError, ValueError):
         raise ConfigError(f"{field}={value!r} must be a number") from None
+
+
+def check_positive(field: str, value, *, strict: bool = True, finite: bool = True) -> None:
+    """Raise :class:`ConfigError` unless ``value`` > 0 (or >= 0 when ``strict`` is False) and,
+    unless ``finite`` is False, finite (``inf`` would pass a range check that ``nan`` fails)."""
+    v = _number(field, value)
     bound = "> 0" if strict else ">= 0"
     if v != v or (v <= 0 if strict else v < 0):
         raise ConfigError(f"{field}={value!r} must be {bound}")
@@ -38,12 +43,7 @@ def check_finite(field: str, value) -> None:
         for k, v in enumerate(value):
             check_finite(f"{field}[{k}]", v)
         return
-    if isinstance(value, bool):
-        raise ConfigError(f"{field}={value!r} must be a number, not a boolean")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{field}={value!r} must be a number") from None
+    v = _number(field, value)
     if v != v or v in (float("inf"), float("-inf")):
         raise ConfigError(f"{field}={value!r} must be a finite number")
 
