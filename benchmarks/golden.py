@@ -71,11 +71,6 @@ def canonical(results: Path) -> str:
     return buf.getvalue()
 
 
-def _has_data() -> bool:
-    root = os.environ.get("DSLEARN_ETHUCY_ROOT") or str(ROOT.parent / "shared" / "data" / "eth_ucy")
-    return (Path(root) / "biwi_eth.txt").is_file()
-
-
 def run_one(name: str, work: Path) -> tuple[str, float]:
     overrides, _ = RUNS[name]
     out = work / name
@@ -102,7 +97,9 @@ def _select(only: str | None) -> list[str]:
     unknown = [n for n in names if n not in RUNS]
     if unknown:
         raise SystemExit(f"golden: unknown run(s) {unknown}; choose from {list(RUNS)}")
-    data = _has_data()
+    from dslearn.data.ethucy import data_available
+
+    data = data_available()
     return [n for n in names if data or not RUNS[n][1]]
 
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from dslearn.data.ethucy import default_root
+from dslearn.data.ethucy import data_available, default_root
 from dslearn.errors import ConfigError
 from dslearn.models.gp import GPMotionModel, OnlineGP
 from dslearn.studies import ethucy_forecast as ef
@@ -120,14 +120,6 @@ def _tiny_cfg(**task_over):
     return OmegaConf.create({"task": t, "seed": 0, "device": "cpu", "dtype": "float64", "progress": False})
 
 
-def _has_data():
-    try:
-        default_root()
-        return True
-    except ConfigError:
-        return False
-
-
 def _cv_by_hand(scene: str, n_windows: int):
     """Constant-velocity ADE / FDE and pedestrian-window count of the tiny run's test windows,
     recomputed in numpy from the raw files (the same 20-step windows, evenly subsampled)."""
@@ -150,7 +142,7 @@ def _cv_by_hand(scene: str, n_windows: int):
     return e.mean(), e[:, -1].mean(), len(e)
 
 
-@pytest.mark.skipif(not _has_data(), reason="ETH/UCY data root not found")
+@pytest.mark.skipif(not data_available(), reason="ETH/UCY data root not found")
 def test_tiny_end_to_end_run_report_and_learning_curves(tmp_path):
     curves_file = tmp_path / "run" / "learning_curves.csv"
     df = ef.run(_tiny_cfg(curves_file=str(curves_file)))

@@ -11,6 +11,7 @@ import torch
 from omegaconf import OmegaConf
 
 from dslearn.data.episodes import _groups, extract_episodes, finite_difference_velocity, split_episodes
+from dslearn.data.ethucy import data_available
 from dslearn.errors import ConfigError
 from dslearn.models.social_force import SocialForce
 from dslearn.sim.network import is_connected
@@ -197,20 +198,7 @@ def tiny_cfg(**task):
     return cfg
 
 
-def _has_data():
-    """Whether the ETH/UCY folder is there; only its absence skips (any other error fails)."""
-    from dslearn.data.ethucy import default_root
-
-    try:
-        default_root()
-    except ConfigError as e:
-        if "does not exist" in str(e):
-            return False
-        raise
-    return True
-
-
-@pytest.mark.skipif(not _has_data(), reason="ETH/UCY data root missing")
+@pytest.mark.skipif(not data_available(), reason="ETH/UCY data root missing")
 def test_tables_end_to_end_on_a_real_scene(tmp_path):
     cfg = tiny_cfg(scenes=["zara1"])
     df = et.run(cfg)

@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from dslearn.data.ethucy import data_available
 from dslearn.errors import ConfigError
 from dslearn.models.base import MotionModel
 from dslearn.models.lstm import (
@@ -277,17 +278,7 @@ def test_schedule_config_errors():
         train_lstm(m, _lines(8), epochs=2, batch_size=4, lr=1e-3, lr_factor=0.5)
 
 
-def _has_data():
-    from dslearn.data.ethucy import default_root
-
-    try:
-        default_root()
-        return True
-    except ConfigError:
-        return False
-
-
-@pytest.mark.skipif(not _has_data(), reason="ETH/UCY data root not found")
+@pytest.mark.skipif(not data_available(), reason="ETH/UCY data root not found")
 def test_train_lstm_app_early_stopping(tmp_path):
     from omegaconf import OmegaConf
 

@@ -81,6 +81,16 @@ VAL_FIRST_FRAME: dict[str, int] = {
 SPLIT_PARTS = ("all", "train", "val")
 
 
+def _default_path() -> Path:
+    env = os.environ.get(ENV_ROOT)
+    return Path(env) if env else Path(__file__).resolve().parents[2].parent / "shared" / "data" / "eth_ucy"
+
+
+def data_available() -> bool:
+    """Whether the default data folder (:func:`default_root`) exists."""
+    return _default_path().is_dir()
+
+
 def default_root() -> Path:
     """The data folder: ``$DSLEARN_ETHUCY_ROOT`` if set, else ``<repo>/../shared/data/eth_ucy``.
 
@@ -88,7 +98,7 @@ def default_root() -> Path:
         ConfigError: naming ``task.data_root`` when the folder does not exist.
     """
     env = os.environ.get(ENV_ROOT)
-    root = Path(env) if env else Path(__file__).resolve().parents[2].parent / "shared" / "data" / "eth_ucy"
+    root = _default_path()
     if not root.is_dir():
         where = f"${ENV_ROOT}={env}" if env else "the default data folder"
         raise ConfigError(

@@ -9,11 +9,10 @@ the EKF. Shapes: nodes first, time second, ``(S, K+1, Dx)`` and ``(S, K+1, Dx, D
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from ..types import safe_cholesky, symmetrize
-
-import torch
 
 
 def rts_smoother(m: Tensor, P: Tensor, y_pred: Tensor, P_pred: Tensor, F: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -60,9 +59,8 @@ def transition_error_moments(
         ``(S, K, Dx, Dx)``.
     """
     ms, Ps, G = rts_smoother(m, P, y_pred, P_pred, F)
-    Ft = F
-    e = ms[:, 1:] - y_pred - (Ft @ (ms[:, :-1] - m[:, :-1]).unsqueeze(-1)).squeeze(-1)
+    e = ms[:, 1:] - y_pred - (F @ (ms[:, :-1] - m[:, :-1]).unsqueeze(-1)).squeeze(-1)
     C = Ps[:, 1:] @ G.transpose(-1, -2)  # Cov(y^t, y^{t-1} | all)
-    FC = Ft @ C.transpose(-1, -2)
-    M = e.unsqueeze(-1) * e.unsqueeze(-2) + Ps[:, 1:] - FC - FC.transpose(-1, -2) + Ft @ Ps[:, :-1] @ Ft.transpose(-1, -2)
+    FC = F @ C.transpose(-1, -2)
+    M = e.unsqueeze(-1) * e.unsqueeze(-2) + Ps[:, 1:] - FC - FC.transpose(-1, -2) + F @ Ps[:, :-1] @ F.transpose(-1, -2)
     return symmetrize(M)
