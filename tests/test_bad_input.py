@@ -61,7 +61,8 @@ def assert_refused(code, out, err, fragment, where=None, exit_code=2, prog="dsle
     assert "Traceback" not in err and "Traceback" not in out
     if where is not None:
         where = Path(where)
-        assert not list(where.rglob("results.csv")) if where.exists() else True
+        left = list(where.rglob("results.csv")) if where.exists() else []  # a missing folder holds no result
+        assert left == [], left
         for st in where.rglob("status.json") if where.exists() else []:
             assert json.loads(st.read_text())["status"] in ("failed", "interrupted"), st.read_text()
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from dslearn.data.ethucy import data_available, default_root
+from dslearn.data.ethucy import data_available
 from dslearn.errors import ConfigError
 from dslearn.models.gp import GPMotionModel, OnlineGP
 from dslearn.studies import ethucy_forecast as ef

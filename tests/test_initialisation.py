@@ -114,7 +114,9 @@ def test_one_rule_for_every_fusion():
 def test_priors_keep_targets_apart():
     for a in (1, 2, 3, 5):
         p = prior_means(a, (0.0, 8.0, 0.0, 8.0))[:, :2]
-        assert torch.allclose(p.mean(0), torch.tensor([4.0, 4.0], dtype=D), atol=1e-12) or a == 1
+        # a single target sits at the circle's first point c + (r, 0), r = 8 / 16; more are centred on c
+        centre = torch.tensor([4.5, 4.0] if a == 1 else [4.0, 4.0], dtype=D)
+        assert torch.allclose(p.mean(0), centre, atol=1e-12), (a, p)
         if a > 1:
             d = torch.cdist(p, p) + torch.eye(a, dtype=D) * 1e9
             assert d.min() >= 2 * 0.5 * math.sin(math.pi / a) - 1e-12  # on a circle of radius 8/16
