@@ -45,7 +45,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from .io import atomic_write_csv, atomic_write_text
+from dslearn.io import atomic_write_csv, atomic_write_text
 
 ALL = ("reference", "protocol", "gp", "fantasy", "network", "dtype", "studies")
 
@@ -86,7 +86,7 @@ def machine_info() -> dict:
 def _compose(overrides):
     from hydra import compose, initialize_config_dir
 
-    from .run import CONF_DIR
+    from dslearn.run import CONF_DIR
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
         return compose("config", overrides=list(overrides))
@@ -95,8 +95,8 @@ def _compose(overrides):
 # ------------------------------------------------------------------------------------------
 # workload items (each runs in a child process; returns a list of row dicts)
 def item_reference(model: str, fusion: str, train: int, test: int, device: str = "cpu") -> list[dict]:
-    from .reference import ReferenceYu
-    from .studies.yu import YuStudy
+    from dslearn.reference import ReferenceYu
+    from dslearn.studies.yu import YuStudy
 
     ov = [f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}", f"data.test_episodes={test}", f"device={device}"]
     cfg = _compose(ov)
@@ -117,7 +117,7 @@ def item_reference(model: str, fusion: str, train: int, test: int, device: str =
 
 def item_protocol(model: str, fusion: str, train: int, test: int, device: str = "cpu", dtype: str = "float64",
                   workload: str = "protocol") -> list[dict]:
-    from .studies.yu import YuStudy
+    from dslearn.studies.yu import YuStudy
 
     cfg = _compose([f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}",
                     f"data.test_episodes={test}", f"device={device}", f"dtype={dtype}"])
@@ -136,8 +136,8 @@ def item_protocol(model: str, fusion: str, train: int, test: int, device: str = 
 
 def _make_gp(variant: str, nodes: int, n: int, dim: int, extra: int, gen, dtype=torch.float64):
     """A GP of ``variant`` holding ``n`` random points per node (bulk-loaded)."""
-    from .models.gp import OnlineGP
-    from .models.sparse import SGPR, SSGP, WindowGP
+    from dslearn.learning.gp import OnlineGP
+    from dslearn.learning.sparse import SGPR, SSGP, WindowGP
 
     X = 2 * torch.randn(nodes, n, dim, generator=gen, dtype=dtype)
     Y = torch.sin(X)
@@ -196,7 +196,7 @@ def item_fantasy(n: int = 2400, dim: int = 8, steps: int = 2) -> list[dict]:
     """GPyTorch defaults at n points (one node, ``dim`` outputs as a batch): refit vs fantasy."""
     import gpytorch
 
-    from .reference import _ExactGP
+    from dslearn.reference import _ExactGP
 
     gen = torch.Generator().manual_seed(0)
     X = 2 * torch.randn(n, dim, generator=gen, dtype=torch.float64)
@@ -235,8 +235,8 @@ def _network_cfg(nodes: int, steps: int, model: str = "gp_increment"):
 
 
 def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str = "cpu") -> list[dict]:
-    from .studies.yu import YuStudy, _to, DTYPES
-    from .tracker import initial_belief, track
+    from dslearn.studies.yu import YuStudy, _to, DTYPES
+    from dslearn.filters.distributed import initial_belief, track
 
     cfg = _network_cfg(nodes, steps)
     cfg.device = device
@@ -255,8 +255,8 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
                ms_per_step=1e3 * wall / steps, ms_per_node_step=1e3 * wall / (steps * nodes),
                peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device))
     if ref_steps:
-        from .reference import ReferenceGP, ReferenceYu
-        from .sim.scenario import Episodes
+        from dslearn.reference import ReferenceGP, ReferenceYu
+        from dslearn.sim.scenario import Episodes
 
         mc = cfg.model
         ref_nodes = [ReferenceGP(scenario.state_dim, mc.outputscale, mc.lengthscale, mc.noise_std, mc.mean, mc.noise, torch.float64)
@@ -469,7 +469,7 @@ def main(argv=None) -> None:
 
 def write_outputs(df: pd.DataFrame, out: Path) -> str:
     """``bench.csv``, ``bench.md`` (machine lines, table, slopes, protocol ratio) and the GP plot."""
-    from .report import markdown
+    from dslearn.report import markdown
 
     out.mkdir(parents=True, exist_ok=True)
     extra = []

@@ -25,7 +25,16 @@ import pandas as pd
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from .io import META_FILE, RESULTS_FILE, SWEEP_TABLE, RunDirBusy, RunLock, atomic_write_csv, atomic_write_text, check_complete
+from dslearn.io import (
+    META_FILE,
+    RESULTS_FILE,
+    SWEEP_TABLE,
+    RunDirBusy,
+    RunLock,
+    atomic_write_csv,
+    atomic_write_text,
+    check_complete,
+)
 
 log = logging.getLogger("dslearn.sweep")
 

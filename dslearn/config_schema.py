@@ -37,7 +37,7 @@ from typing import Any, List, Optional
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from .errors import ConfigError, check_finite, check_choice, check_positive
+from dslearn.errors import ConfigError, check_finite, check_choice, check_positive
 
 
 
@@ -135,7 +135,7 @@ class ModelSchema:
     fit_iters: Optional[int] = None
     fit_lr: Optional[float] = None
     capacity: Optional[int] = None
-    # scalable variants (dslearn.models.sparse)
+    # scalable variants (dslearn.learning.sparse)
     variant: Optional[str] = None
     window: Optional[int] = None
     inducing: Optional[int] = None
@@ -495,8 +495,8 @@ def validate_core(cfg: DictConfig) -> None:
         check_choice("observation.mean", ob.mean, ("zero", "constant", "identity"))
         check_choice("observation.noise", ob.noise, ("latent", "predictive"))
     # consensus
-    from .consensus.fusion import FUSIONS
-    from .consensus.weights import WEIGHT_METHODS
+    from dslearn.fusion.strategies import FUSIONS
+    from dslearn.fusion.weights import WEIGHT_METHODS
 
     check_choice("consensus.name", co.name, FUSIONS)
     check_choice("consensus.weights", co.weights, WEIGHT_METHODS)

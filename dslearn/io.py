@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from .errors import DataFormatError
+from dslearn.errors import DataFormatError
 
 RESULTS_FILE = "results.csv"
 META_FILE = "meta.json"

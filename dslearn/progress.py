@@ -187,8 +187,8 @@ def measure(model: str = "gp_increment", episodes: int = 150) -> list[str]:
     import numpy as np
     import torch
 
-    from .studies.yu import YuStudy
-    from .tracker import initial_belief, track as track_episode
+    from dslearn.studies.yu import YuStudy
+    from dslearn.filters.distributed import initial_belief, track as track_episode
 
     torch.set_num_threads(1)
     study = YuStudy.from_options(model=model, consensus="hybrid", train_episodes=episodes, test_episodes=2)

@@ -1,6 +1,6 @@
 r"""A straightforward reference implementation of the Yu et al. protocol, for benchmarks and tests.
 
-Same mathematics as :mod:`dslearn.tracker` / :mod:`dslearn.studies.yu`, written the way one
+Same mathematics as :mod:`dslearn.filters.distributed` / :mod:`dslearn.studies.yu`, written the way one
 would write it first — and kept deliberately that way, as the baseline the fast path is
 timed and tested against:
 
@@ -26,11 +26,11 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from .errors import ConfigError
-from .models import GPMotionModel
-from .studies.yu import YuStudy, _resolve_device, DTYPES
-from .tracker import TrackResult, tracking_metrics
-from .types import AGENT_DIM, safe_cholesky, spd_inverse
+from dslearn.errors import ConfigError
+from dslearn.models import GPMotionModel
+from dslearn.studies.yu import YuStudy, _resolve_device, DTYPES
+from dslearn.filters.distributed import TrackResult, tracking_metrics
+from dslearn.types import AGENT_DIM, safe_cholesky, spd_inverse
 
 
 class _ExactGP(gpytorch.models.ExactGP):
@@ -140,7 +140,7 @@ class ReferenceYu(YuStudy):
         else:
             nodes = [_ParametricRef(model, ctx)] * S
         self.ref_nodes = nodes
-        from .tracker import initial_belief
+        from dslearn.filters.distributed import initial_belief
 
         gate = c.filter.get("learn_gate_std")
         W = fusion.weights.to(dtype)

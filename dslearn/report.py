@@ -26,8 +26,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from .errors import DataFormatError
-from .io import atomic_write_csv, atomic_write_text, load_results
+from dslearn.errors import DataFormatError
+from dslearn.io import atomic_write_csv, atomic_write_text, load_results
 
 #: units of the metrics (``"1"`` = dimensionless); names ending in ``_s`` / ``_m`` / ``_frac`` /
 #: ``_kb`` get s / m / 1 / kB without an entry here
@@ -462,9 +462,14 @@ def report(root: str | Path, out_dir: str | Path | None = None) -> str:
     before = {p.name for p in out.iterdir()} if out.is_dir() else set()
     for task in tasks:
         try:
-            mod = importlib.import_module(f"dslearn.studies.{task}")
-        except ImportError:
-            continue
+            mod = importlib.import_module(f"dslearn.reports.{task}")
+        except ModuleNotFoundError as e:
+            if e.name != f"dslearn.reports.{task}":
+                raise
+            try:  # transition: a study whose report has not moved yet
+                mod = importlib.import_module(f"dslearn.studies.{task}")
+            except ImportError:
+                continue
         fn = getattr(mod, "report", None)
         if fn is not None:
             sub = results[results["task"] == task]

@@ -47,10 +47,10 @@ import hydra  # noqa: E402
 import pandas as pd  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
-from . import __version__  # noqa: E402
-from .config_schema import CONF_DIR as _CONF_DIR, CONF_DIRS  # noqa: E402
-from .errors import ConfigError, DataFormatError  # noqa: E402
-from .io import (  # noqa: E402
+from dslearn import __version__  # noqa: E402
+from dslearn.config_schema import CONF_DIR as _CONF_DIR, CONF_DIRS  # noqa: E402
+from dslearn.errors import ConfigError, DataFormatError  # noqa: E402
+from dslearn.io import (
     META_FILE,
     RESULTS_FILE,
     RunDirBusy,
@@ -70,7 +70,7 @@ PROG = "dslearn-run"
 def resolve_entry(entry: str):
     """A registered study entry (``"pkg.module:function"``, one of
     :data:`dslearn.config_schema.TASK_ENTRIES`) -> the function."""
-    from .config_schema import check_entry
+    from dslearn.config_schema import check_entry
 
     check_entry(entry)
     mod, fn = entry.split(":", 1)
@@ -155,7 +155,7 @@ class WarningLedger:
         return name == "NumericalWarning" or "added jitter" in text or "diagonal clamped" in text
 
     def __enter__(self) -> "WarningLedger":
-        from .types import JITTER
+        from dslearn.types import JITTER
 
         self._j = JITTER
         self._j0, self._jmax0 = JITTER.count, JITTER.max_jitter
@@ -206,7 +206,7 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
 
     Raises :class:`ConfigError` (before any work) for a bad configuration.
     """
-    from .config_schema import validate_config
+    from dslearn.config_schema import validate_config
 
     out_dir = Path(out_dir)
     validate_config(cfg)
@@ -265,7 +265,7 @@ def _write_status(out_dir: Path, status: str, wall: float, **extra) -> None:
 
 def _same_job(out_dir: Path, job: dict) -> bool:
     """Whether the result in ``out_dir`` was made with this job's overrides (runtime keys aside)."""
-    from .callbacks import parse_overrides
+    from dslearn.callbacks import parse_overrides
 
     try:
         meta = json.loads((out_dir / META_FILE).read_text())
@@ -391,7 +391,7 @@ def _run_locked(cfg: DictConfig, out_dir: Path, multirun: bool, job: dict, tag: 
     wall = time.perf_counter() - t0
     _write_status(out_dir, "done", wall, rows=len(df))
     if cfg.get("print_table", True) and not multirun:
-        from .report import console_table, summarize
+        from dslearn.report import console_table, summarize
 
         summary = summarize(df)
         text = None
@@ -697,7 +697,7 @@ def check_jobs(combos: list[list[str]], compose, visit=None) -> tuple[int, int]:
     compositions made)``."""
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
 
-    from .config_schema import validate_config
+    from dslearn.config_schema import validate_config
 
     visit = visit or validate_config
     many = len(combos) > 1

@@ -7,7 +7,7 @@ or ``(R, C)``) and draws ``randn`` / ``rand`` tensors of a larger shape ``(*shap
 ``rest`` from each entry's own generator and stacking. Computation stays vectorised; only the (cheap)
 noise draws loop over the entries.
 
-Sampling functions (:mod:`dslearn.sim.scenario`, :mod:`dslearn.rbpf`) take either a plain ``torch.Generator`` (one stream for the
+Sampling functions (:mod:`dslearn.sim.scenario`, :mod:`dslearn.filters.rbpf`) take either a plain ``torch.Generator`` (one stream for the
 whole tensor) or a :class:`Streams`; :func:`randn` and :func:`rand` dispatch on the type.
 Seeds come from :func:`stream_seed`, a hash of the key (e.g. ``(seed, "filter", run, strategy)``), so a
 run's streams depend only on its key.

@@ -27,11 +27,11 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
-from .data.ethucy import ALL_SCENES, load_scene, split_scene, windows
-from .config_schema import CONF_DIR as _CONF_DIR
-from .errors import ConfigError, check_choice
-from .io import atomic_write_csv
-from .models.lstm import SCHEDULE_KEYS, SocialLSTM, schedule_from_config, train_lstm
+from dslearn.data.ethucy import ALL_SCENES, load_scene, split_scene, windows
+from dslearn.config_schema import CONF_DIR as _CONF_DIR
+from dslearn.errors import ConfigError, check_choice
+from dslearn.io import atomic_write_csv
+from dslearn.models.lstm import SCHEDULE_KEYS, SocialLSTM, schedule_from_config, train_lstm
 
 log = logging.getLogger("dslearn.train_lstm")
 CONF_DIR = str(_CONF_DIR)
@@ -41,7 +41,7 @@ LSTM_GROUP_KEYS = ("embed", "hidden", "obs_len", "pred_len", "pooling", "grid", 
 
 
 def _windows(names, part: str, cfg: DictConfig, length: int) -> torch.Tensor | None:
-    from .studies.ethucy_forecast import _cat_windows
+    from dslearn.studies.ethucy_forecast import _cat_windows
 
     parts = []
     for n in names:
@@ -85,12 +85,12 @@ def train(cfg: DictConfig, out_dir: str | Path) -> tuple[SocialLSTM, "object", P
     if tr is None:
         raise ConfigError(f"train_scenes {list(cfg.train_scenes)} give no window of {length} steps")
     if cfg.get("max_windows") is not None:
-        from .studies.ethucy_forecast import _subsample
+        from dslearn.studies.ethucy_forecast import _subsample
 
         tr = _subsample(tr, int(cfg.max_windows))
     va = _windows(cfg.val_scenes, str(cfg.val_part), cfg, length) if list(cfg.val_scenes) else None
     if model.pooling == "none":  # independent pedestrians: one sequence each, no padding
-        from .studies.ethucy_forecast import _per_agent
+        from dslearn.studies.ethucy_forecast import _per_agent
 
         tr = _per_agent(tr).unsqueeze(2)
         va = None if va is None else _per_agent(va).unsqueeze(2)

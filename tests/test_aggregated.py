@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from dslearn.dgpt.aggregation import aggregate
+from dslearn.fusion.aggregation import aggregate
 from dslearn.errors import ConfigError
 from dslearn.models.aggregated import AggregatedGPMotion
 from dslearn.models.gp import GPMotionModel

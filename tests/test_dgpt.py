@@ -9,15 +9,25 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from dslearn.dgpt import hyperopt as ho
-from dslearn.dgpt.aggregation import (aggregate, aggregate_grbcm, entropy_weights, ucb_bound,
-                                      ucb_bound_grbcm, ucb_gamma)
-from dslearn.dgpt.experts import (Hypers, closed_form_gp, expert_log_marginal_likelihood,
-                                  factorised_log_marginal_likelihood, predict_latent,
-                                  predict_latent_slice)
-from dslearn.dgpt.scenarios import (generate_s1, generate_s2, generate_s3, s3_turn_rates,
-                                    singer_sigma)
-from dslearn.dgpt.tracker import HyperConfig, _window, keyed_uniform, track
+from dslearn.learning import hyperopt as ho
+from dslearn.fusion.aggregation import (
+    aggregate,
+    aggregate_grbcm,
+    entropy_weights,
+    ucb_bound,
+    ucb_bound_grbcm,
+    ucb_gamma,
+)
+from dslearn.learning.experts import (
+    Hypers,
+    closed_form_gp,
+    expert_log_marginal_likelihood,
+    factorised_log_marginal_likelihood,
+    predict_latent,
+    predict_latent_slice,
+)
+from dslearn.sim.manoeuvres import generate_s1, generate_s2, generate_s3, s3_turn_rates, singer_sigma
+from dslearn.filters.dgpt import HyperConfig, _window, keyed_uniform, track
 from dslearn.errors import ConfigError
 from dslearn.studies import liu_dgpt
 

@@ -9,7 +9,8 @@ from omegaconf import OmegaConf
 
 from dslearn.data.ethucy import data_available
 from dslearn.errors import ConfigError
-from dslearn.models.gp import GPMotionModel, OnlineGP
+from dslearn.models.gp import GPMotionModel
+from dslearn.learning.gp import OnlineGP
 from dslearn.studies import ethucy_forecast as ef
 from dslearn.types import StepContext
 

@@ -10,13 +10,19 @@ import torch
 from omegaconf import OmegaConf
 
 from dslearn.errors import ConfigError
-from dslearn.factorgraph.centralized import gauss_newton, iterated_ekf_update
-from dslearn.factorgraph.crlb import crlb, crlb_from_fisher, fisher_information
-from dslearn.factorgraph.identification import compress_measurements, identify
-from dslearn.factorgraph.messages import linearize, marginal, rho_from_zeta, zeta_moment, zeta_natural
-from dslearn.factorgraph.scenario import SquaredRange, polynomial_trajectory, run_noise, run_seed
-from dslearn.factorgraph.simulation import TrackerSettings, simulate
-from dslearn.factorgraph.tracking import TrackState, ekf_fg_step, observation_variance
+from dslearn.learning.factor_graph.centralized import gauss_newton, iterated_ekf_update
+from dslearn.learning.factor_graph.crlb import crlb, crlb_from_fisher, fisher_information
+from dslearn.learning.factor_graph.identification import compress_measurements, identify
+from dslearn.learning.factor_graph.messages import (
+    linearize,
+    marginal,
+    rho_from_zeta,
+    zeta_moment,
+    zeta_natural,
+)
+from dslearn.sim.squared_range import SquaredRange, polynomial_trajectory, run_noise, run_seed
+from dslearn.learning.factor_graph.engine import TrackerSettings, simulate
+from dslearn.filters.ekf_fg import TrackState, ekf_fg_step, observation_variance
 
 DT = torch.float64
 SENSORS = torch.tensor([[-30.0, 50.0], [10.0, 5.0], [60.0, 20.0]], dtype=DT)
@@ -466,7 +472,7 @@ def test_study_rejects_negative_seed():
 
 
 def test_small_cholesky_matches_torch():
-    from dslearn.factorgraph.linalg import cholesky, cholesky_solve
+    from dslearn.linalg import cholesky, cholesky_solve
 
     g = _gen(5)
     for D in (1, 2, 3, 5):

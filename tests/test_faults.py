@@ -1,4 +1,4 @@
-"""Faults in the network (dslearn/faults.py), gating, and the yu_faults study end to end."""
+"""Faults in the network (dslearn/fusion/faults.py), gating, and the yu_faults study end to end."""
 
 import math
 
@@ -7,9 +7,9 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from dslearn.consensus.fusion import make_fusion, mix
-from dslearn.consensus.weights import metropolis, uniform
-from dslearn.faults import (
+from dslearn.fusion.strategies import make_fusion, mix
+from dslearn.fusion.weights import metropolis, uniform
+from dslearn.fusion.faults import (
     FaultyFusion,
     add_outliers,
     apply_node_failures,
@@ -178,7 +178,7 @@ def test_yu_faults_report(tmp_path):
 def test_an_episode_s_faults_do_not_depend_on_its_batch():
     """Per-episode streams: episode 1's node failures, outliers and live graphs are the same alone
     and inside a batch of three (to the bit)."""
-    from dslearn.faults import add_outliers, draw_live_graph, node_failure_schedule
+    from dslearn.fusion.faults import add_outliers, draw_live_graph, node_failure_schedule
     from dslearn.sim.network import make_network
     from dslearn.sim.scenario import SocialForceScenario, episode_streams
     from dslearn.streams import Streams

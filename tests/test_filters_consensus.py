@@ -3,13 +3,13 @@
 import pytest
 import torch
 
-from dslearn.consensus.fusion import make_fusion
-from dslearn.consensus.weights import metropolis, uniform
+from dslearn.fusion.strategies import make_fusion
+from dslearn.fusion.weights import metropolis, uniform
 from dslearn.filters.information import novel_information, predict, to_information, to_moment
 from dslearn.models import ConstantVelocity, LinearPositionObservation
 from dslearn.sim.network import make_network
 from dslearn.sim.scenario import SocialForceScenario
-from dslearn.tracker import initial_belief, track
+from dslearn.filters.distributed import initial_belief, track
 from dslearn.types import StepContext
 
 D = torch.float64
@@ -170,7 +170,7 @@ def test_ce_averages_the_local_estimates_and_keeps_local_information():
 
 
 def test_tracking_metrics_by_hand():
-    from dslearn.tracker import TrackResult, tracking_metrics
+    from dslearn.filters.distributed import TrackResult, tracking_metrics
 
     # one node, one episode, K = 2 steps, two agents; errors chosen by hand
     truth = torch.zeros(1, 3, 8, dtype=D)
@@ -189,7 +189,7 @@ def test_tracking_metrics_by_hand():
 
 
 def test_prediction_error_by_hand():
-    from dslearn.tracker import prediction_error
+    from dslearn.filters.distributed import prediction_error
 
     lin = ConstantVelocity(1, 0.1)
     ctx = StepContext(dt=0.5)

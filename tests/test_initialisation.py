@@ -6,13 +6,13 @@ import math
 import pytest
 import torch
 
-from dslearn.consensus.fusion import make_fusion
-from dslearn.consensus.weights import consensus_weights
+from dslearn.fusion.strategies import make_fusion
+from dslearn.fusion.weights import consensus_weights
 from dslearn.models.social_force import SocialForce, soft_distance, social_force_acceleration
 from dslearn.sim.network import make_network
 from dslearn.sim.scenario import SocialForceScenario
 from dslearn.studies.yu import YuStudy
-from dslearn.tracker import diffuse_prior, first_observations, initial_belief, prior_means
+from dslearn.filters.distributed import diffuse_prior, first_observations, initial_belief, prior_means
 from dslearn.types import StepContext, agents, batch_jacobian
 
 D = torch.float64

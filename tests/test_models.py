@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from dslearn.errors import ConfigError
-from dslearn.models import ConstantVelocity, GPMotionModel, OnlineGP, SocialForce
+from dslearn.models import ConstantVelocity, GPMotionModel, SocialForce
+from dslearn.learning.gp import OnlineGP
 from dslearn.models.social_force import social_force_acceleration
 from dslearn.types import StepContext, batch_jacobian
 

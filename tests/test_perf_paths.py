@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from dslearn.models import GPMotionModel, OnlineGP
+from dslearn.models import GPMotionModel
+from dslearn.learning.gp import OnlineGP
 from dslearn.types import StepContext
 
 D = torch.float64

@@ -1,4 +1,4 @@
-"""Tests for dslearn.rbpf and the braga_tbn study (RBPF + online EM + consensus on sufficient statistics)."""
+"""Tests for dslearn.filters.rbpf and the braga_tbn study (RBPF + online EM + consensus on sufficient statistics)."""
 
 from __future__ import annotations
 
@@ -10,11 +10,19 @@ import torch
 from omegaconf import OmegaConf
 
 from dslearn.errors import ConfigError
-from dslearn.rbpf import (average_consensus, check_eq22, combination_matrices, cv_model, init_state, m_step,
-                          make_params, max_degree_paper, online_estep, posterior_mean, rbpf_step,
-                          throughput_bytes_per_step, weight_matrix)
-from dslearn.rbpf.cooperation import network_adjacency
-from dslearn.rbpf.jmnls import obs_loglik, simulate_modes, stats_dim
+from dslearn.fusion.statistics import (
+    average_consensus,
+    check_eq22,
+    combination_matrices,
+    max_degree_paper,
+    throughput_bytes_per_step,
+    weight_matrix,
+)
+from dslearn.sim.terrain import cv_model
+from dslearn.filters.rbpf import init_state, online_estep, posterior_mean, rbpf_step
+from dslearn.models.jmnls import m_step, make_params
+from dslearn.fusion.statistics import network_adjacency
+from dslearn.models.jmnls import obs_loglik, simulate_modes, stats_dim
 
 @pytest.fixture(autouse=True, scope="module")
 def _one_thread():
@@ -160,7 +168,7 @@ def test_online_estep_chunked_and_floored_equals_reference():
         got[chunk] = online_estep(x_prev, logw, alpha, T_prev, x_new, e, pi, eta, dyn)
     for chunk, out in got.items():
         assert torch.equal(out, got[None]) or torch.allclose(out, got[None], rtol=1e-13, atol=0), chunk
-    from dslearn.rbpf.filter import transition_stats
+    from dslearn.filters.rbpf import transition_stats
 
     want = (1 - eta) * want_part + eta * transition_stats(bm / z, e)
     torch.testing.assert_close(got[None], want, rtol=1e-12, atol=1e-12)
@@ -435,7 +443,7 @@ def test_trace_runs_match_study_and_diagnostics():
 
 def test_terrain_gradient_planar_closed_form():
     """On a planar map z = 500 + 0.3 X - 0.4 Y the bilinear lookup is exact, so |grad h| = 0.5 everywhere."""
-    from dslearn.rbpf.terrain import Scenario, TerrainMap
+    from dslearn.sim.terrain import Scenario, TerrainMap
     from dslearn.studies.braga_tbn import terrain_gradient
 
     res = 25.0
@@ -451,7 +459,7 @@ def test_terrain_gradient_planar_closed_form():
 def test_regularised_resampling_kernel_covariance():
     """Post-regularised resampling: resampled entries get noise N(0, h^2 Sigma) (Sigma = weighted covariance before
     resampling, h = optimal bandwidth); entries above the ESS threshold are untouched; regularise=0 = plain."""
-    from dslearn.rbpf.filter import RBPFState, regularisation_bandwidth, resample
+    from dslearn.filters.rbpf import RBPFState, regularisation_bandwidth, resample
 
     g = torch.Generator().manual_seed(11)
     n = 40000

@@ -1,12 +1,13 @@
-"""Scalable GP variants (dslearn.models.sparse): each against its closed form / the exact GP."""
+"""Scalable GP variants (dslearn.learning.sparse): each against its closed form / the exact GP."""
 
 import pytest
 import torch
 from omegaconf import OmegaConf
 
 from dslearn.errors import ConfigError
-from dslearn.models import GPMotionModel, OnlineGP
-from dslearn.models.sparse import SGPR, SSGP, WindowGP, chol_update
+from dslearn.models import GPMotionModel
+from dslearn.learning.gp import OnlineGP
+from dslearn.learning.sparse import SGPR, SSGP, WindowGP, chol_update
 from dslearn.types import StepContext
 
 D = torch.float64
@@ -160,7 +161,7 @@ def _tiny_cfg(model_overrides):
 
 
 def test_study_runs_each_variant_and_large_window_equals_exact(monkeypatch):
-    from dslearn.models.gp import OnlineGP
+    from dslearn.learning.gp import OnlineGP
     from dslearn.studies.yu import YuStudy
 
     ref = YuStudy.from_config(_tiny_cfg({})).run()

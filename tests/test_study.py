@@ -134,7 +134,7 @@ def test_summary_average_row():
 
 def test_learning_gate_skips_uninformed_pairs(make_cfg):
     """With the gate, a node whose estimate is the diffuse prior appends nothing (invalid points)."""
-    from dslearn.tracker import initial_belief, track
+    from dslearn.filters.distributed import initial_belief, track
 
     cfg = make_cfg("model=gp", "consensus=individual", "data.train_episodes=1", "data.test_episodes=1")
     study = YuStudy.from_config(cfg)

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from dslearn.consensus.weights import consensus_weights, max_degree, metropolis, uniform, validate_weights
+from dslearn.fusion.weights import consensus_weights, max_degree, metropolis, uniform, validate_weights
 from dslearn.errors import ConfigError
 from dslearn.sim.network import adjacency_from_edges, is_connected, make_network
 

@@ -1,6 +1,6 @@
 """Real data sets (ETH/UCY pedestrian trajectories)."""
 
-from .ethucy import (
+from dslearn.data.ethucy import (
     ALL_SCENES,
     SCENES,
     Scene,

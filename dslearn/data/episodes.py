@@ -29,7 +29,7 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, check_choice, check_positive
+from dslearn.errors import ConfigError, check_choice, check_positive
 
 CRITERIA = ("mutual", "closest")
 SPLITS = ("time", "scene", "random")

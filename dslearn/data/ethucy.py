@@ -45,7 +45,7 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, DataFormatError, check_choice
+from dslearn.errors import ConfigError, DataFormatError, check_choice
 
 #: benchmark scene -> standard files (the five leave-one-scene-out test scenes)
 SCENES: dict[str, tuple[str, ...]] = {

@@ -12,8 +12,8 @@ import math
 import torch
 from torch import Tensor
 
-from ..models.base import MotionModel, ObservationModel
-from ..types import AGENT_DIM, StepContext, safe_cholesky, spd_inverse, symmetrize
+from dslearn.models.base import MotionModel, ObservationModel
+from dslearn.types import AGENT_DIM, StepContext, safe_cholesky, spd_inverse, symmetrize
 
 
 def to_moment(q: Tensor, omega: Tensor) -> tuple[Tensor, Tensor]:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..types import safe_cholesky, symmetrize
+from dslearn.types import safe_cholesky, symmetrize
 
 
 def rts_smoother(m: Tensor, P: Tensor, y_pred: Tensor, P_pred: Tensor, F: Tensor) -> tuple[Tensor, Tensor, Tensor]:

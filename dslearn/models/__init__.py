@@ -1,11 +1,10 @@
 """Motion and observation models behind one interface."""
 
-from .base import MotionModel, ObservationModel
-from .constant_velocity import ConstantVelocity
-from .social_force import SocialForce
-from .gp import GPMotionModel, OnlineGP
-from .sparse import SGPR, SSGP, WindowGP
-from .observation import LinearPositionObservation, GPObservation
+from dslearn.models.base import MotionModel, ObservationModel
+from dslearn.models.constant_velocity import ConstantVelocity
+from dslearn.models.social_force import SocialForce
+from dslearn.models.gp import GPMotionModel
+from dslearn.models.observation import LinearPositionObservation, GPObservation
 
 __all__ = [
     "MotionModel",
@@ -13,10 +12,6 @@ __all__ = [
     "ConstantVelocity",
     "SocialForce",
     "GPMotionModel",
-    "OnlineGP",
-    "WindowGP",
-    "SGPR",
-    "SSGP",
     "LinearPositionObservation",
     "GPObservation",
 ]

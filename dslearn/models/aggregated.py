@@ -4,7 +4,7 @@ The core study (Yu et al.) gives every node ``i`` its own online GP motion model
 :math:`\mathcal{GP}_i` trained on its own (ŷ^{t-1} → ŷ^t) pairs (:class:`GPMotionModel`). Here node
 ``i``'s *prediction step* uses, instead of its own GP alone, the aggregation of **all** nodes'
 GP predictive distributions evaluated at node ``i``'s state estimate, with one of the rules of
-Liu et al. (FUSION 2022, Sec. II-B; :mod:`dslearn.dgpt.aggregation`): PoE, gPoE, BCM or rBCM.
+Liu et al. (FUSION 2022, Sec. II-B; :mod:`dslearn.fusion.aggregation`): PoE, gPoE, BCM or rBCM.
 Communication: one round per step in which every node broadcasts its GP (or answers the other
 nodes' queries with its predictive mean/variance); the measurement update stays local (or is
 followed by any fusion strategy of the core).
@@ -26,7 +26,7 @@ expert's residual *and* variance (through the weights :math:`\beta_g` and the no
 with :math:`\partial r_g/\partial x` the GP mean Jacobian (closed form, :meth:`OnlineGP.predict`),
 :math:`\partial\sigma_g^2/\partial x = 2\sum_a c_a k(x, x_a)(x - x_a)/l^2`,
 :math:`c = (K + \sigma_\epsilon^2 I)^{-1} k_*` (closed form for the RBF kernel), and the partials of
-the aggregation rule obtained by autograd on :func:`dslearn.dgpt.aggregation.aggregate` (a
+the aggregation rule obtained by autograd on :func:`dslearn.fusion.aggregation.aggregate` (a
 small elementwise graph). ``jacobian=frozen_weights`` drops the variance term (treats the
 weights as locally constant; cheaper, approximate).
 
@@ -39,11 +39,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..dgpt.aggregation import aggregate
-from ..errors import ConfigError, check_choice
-from ..types import StepContext
-from .base import MotionModel
-from .gp import GPMotionModel
+from dslearn.fusion.aggregation import aggregate
+from dslearn.errors import ConfigError, check_choice
+from dslearn.types import StepContext
+from dslearn.models.base import MotionModel
+from dslearn.models.gp import GPMotionModel
 
 RULES = ("poe", "gpoe", "bcm", "rbcm")
 JACOBIANS = ("exact", "frozen_weights")

@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from ..types import StepContext, batch_jacobian
+from dslearn.types import StepContext, batch_jacobian
 
 
 class MotionModel(nn.Module, abc.ABC):
@@ -88,7 +88,7 @@ class MotionModel(nn.Module, abc.ABC):
     def _read_checkpoint(self, path: str | Path, extra: tuple[str, ...] = ()) -> dict:
         """Safe-load ``path`` and check class, state-dict names and shapes, and that the
         tensors named in ``extra`` are present. Returns the checkpoint dict (``state_dict`` set)."""
-        from ..errors import ConfigError, DataFormatError
+        from dslearn.errors import ConfigError, DataFormatError
 
         try:
             blob = torch.load(path, weights_only=True, map_location="cpu")

@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, check_positive
-from ..types import AGENT_DIM, StepContext
-from .base import MotionModel
+from dslearn.errors import ConfigError, check_positive
+from dslearn.types import AGENT_DIM, StepContext
+from dslearn.models.base import MotionModel
 
 
 class ConstantVelocity(MotionModel):

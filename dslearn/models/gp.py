@@ -1,363 +1,17 @@
-r"""Online exact Gaussian-process models with incremental Cholesky updates.
-
-GPyTorch supplies the kernel (``ScaleKernel(RBFKernel)``), the Gaussian likelihood and the
-marginal-likelihood objective used by :meth:`OnlineGP.fit`; the per-step posterior is kept
-by hand as a Cholesky factor extended by one row per appended point (``O(n^2)``), because
-GPyTorch's fantasy updates and its CG path above 800 points are slow or inexact for this
-use (measured; see the README).
-
-One :class:`OnlineGP` holds ``S`` independent data sets (one per sensor node), all of the
-same length ``n`` (every node appends one example per step), so every operation is a
-batched tensor operation over nodes. All ``Dy`` outputs share one kernel (independent
-outputs, as in Yu et al. Section IV-A). Points can be appended as *invalid* (a node had
-nothing to learn from): they are kept as decoupled unit rows of the factor and contribute
-exactly nothing to predictions.
-"""
+r"""GP motion model (GP-EKF): a :class:`~dslearn.models.base.MotionModel` over one online GP
+backend per node (:mod:`dslearn.learning.gp`, :mod:`dslearn.learning.sparse`)."""
 
 from __future__ import annotations
 
-import warnings
-
-import gpytorch
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from ..errors import ConfigError, check_choice, check_positive
-from ..types import JITTER, StepContext, safe_cholesky
-from .base import MotionModel
+from dslearn.errors import ConfigError, check_choice
+from dslearn.learning.gp import OnlineGP
+from dslearn.models.base import MotionModel
+from dslearn.types import StepContext
 
-MEANS = ("zero", "constant", "identity")
 NOISE_MODES = ("latent", "predictive", "adaptive")
-
-
-def _same_input(a: Tensor, b: Tensor, version: int) -> bool:
-    """Whether ``b`` holds the values ``a`` had when it was predicted at (``a._version`` was
-    ``version``): the same memory, unmodified since (no host sync, any device), or, on CPU
-    only, equal values."""
-    if a.shape != b.shape:
-        return False
-    if a.data_ptr() == b.data_ptr() and a.stride() == b.stride() and b._version == version:
-        return True
-    return a.device.type == "cpu" and torch.equal(a, b)
-
-
-class PriorMean:
-    """Prior mean m(x) (zero / constant / identity) and its Jacobian, for GP classes with
-    ``mean_type``, ``output_dim``, ``input_dim`` (and ``constant`` for the constant mean).
-    Shapes ``(S, N, d) -> (S, N, Dy)`` and ``(S, N, Dy, d)``."""
-
-    mean_type: str
-    output_dim: int
-    input_dim: int
-
-    def prior_mean(self, x: Tensor) -> Tensor:
-        if self.mean_type == "identity":
-            return x[..., : self.output_dim]
-        if self.mean_type == "constant":
-            return self.constant.detach().unsqueeze(-2).expand(*x.shape[:-1], self.output_dim)
-        return x.new_zeros(*x.shape[:-1], self.output_dim)
-
-    def prior_mean_jacobian(self, x: Tensor) -> Tensor:
-        j = x.new_zeros(*x.shape[:-1], self.output_dim, self.input_dim)
-        if self.mean_type == "identity":
-            j[..., range(self.output_dim), range(self.output_dim)] = 1.0
-        return j
-
-
-class OnlineGP(PriorMean, nn.Module):
-    r"""``S`` exact GPs with a shared RBF kernel per node, updated online.
-
-    Prior :math:`f \sim \mathcal{GP}(m, k)`, :math:`k(a,b) = \sigma_f^2 \exp(-\|a-b\|^2 / 2l^2)`,
-    observations :math:`y = f(x) + \epsilon`, :math:`\epsilon \sim \mathcal N(0, \sigma_\epsilon^2)`.
-
-    Args:
-        num_nodes: ``S`` independent data sets.
-        input_dim: ``Dx``.
-        output_dim: ``Dy``.
-        outputscale: :math:`\sigma_f` (standard deviation, > 0).
-        lengthscale: :math:`l` (> 0).
-        noise_std: :math:`\sigma_\epsilon` (> 0).
-        mean: prior mean: ``zero``; ``constant`` (learned by :meth:`fit`); ``identity``
-            (``m(x) = x[..., :Dy]``, so the GP learns the increment).
-        capacity: initial buffer size (grows by doubling).
-    """
-
-    def __init__(
-        self,
-        num_nodes: int,
-        input_dim: int,
-        output_dim: int,
-        outputscale: float = 1.0,
-        lengthscale: float = 2.0,
-        noise_std: float = 0.5,
-        mean: str = "zero",
-        capacity: int = 256,
-        dtype: torch.dtype = torch.float64,
-        device: str | torch.device = "cpu",
-    ):
-        super().__init__()
-        check_positive("model.outputscale", outputscale)
-        check_positive("model.lengthscale", lengthscale)
-        check_positive("model.noise_std", noise_std)
-        check_choice("model.mean", mean, MEANS)
-        if mean == "identity" and output_dim > input_dim:
-            raise ConfigError("model.mean=identity needs output_dim <= input_dim")
-        self.num_nodes, self.input_dim, self.output_dim = int(num_nodes), int(input_dim), int(output_dim)
-        self.mean_type = mean
-        bs = torch.Size([self.num_nodes])
-        self.covar_module = gpytorch.kernels.ScaleKernel(gpytorch.kernels.RBFKernel(batch_shape=bs), batch_shape=bs)
-        self.covar_module.outputscale = torch.full(bs, float(outputscale) ** 2)
-        self.covar_module.base_kernel.lengthscale = torch.full((*bs, 1, 1), float(lengthscale))
-        self.likelihood = gpytorch.likelihoods.GaussianLikelihood(batch_shape=bs)
-        self.likelihood.noise = torch.full((*bs, 1), float(noise_std) ** 2)
-        self.constant = nn.Parameter(torch.zeros(self.num_nodes, self.output_dim), requires_grad=mean == "constant")
-        self.to(dtype=dtype, device=device)
-        self.dtype_, self.device_ = dtype, torch.device(device)
-        self.n = 0
-        self.clamped = torch.zeros((), dtype=torch.long, device=self.device_)  # clamped diagonals (CUDA)
-        self._alloc(int(capacity))
-
-    # storage -----------------------------------------------------------------------------
-    def _alloc(self, cap: int) -> None:
-        s, d, o = self.num_nodes, self.input_dim, self.output_dim
-        kw = dict(dtype=self.dtype_, device=self.device_)
-        self.X = torch.zeros(s, cap, d, **kw)
-        self.R = torch.zeros(s, cap, o, **kw)  # residual targets y - m(x)
-        self.V = torch.zeros(s, cap, o, **kw)  # L^{-1} R
-        # Cholesky factor of K + sigma^2 I in the top-left n x n block, identity below: solves
-        # run on the whole contiguous buffer (a strided n x n view takes a ~20x slower path)
-        self.L = torch.eye(cap, **kw).repeat(s, 1, 1)
-        self.mask = torch.zeros(s, cap, dtype=torch.bool, device=self.device_)
-        self._alpha = None
-
-    def _grow(self) -> None:
-        old = (self.X, self.R, self.V, self.L, self.mask)
-        n = self.n
-        # grow in chunks of 128 rows: every solve runs over the whole buffer, so slack rows cost
-        # time at every step (a growth factor of 1.25 wasted up to 56% of a solve); the copy is O(n^2)
-        self._alloc(self.X.shape[1] + 128)
-        self.X[:, :n], self.R[:, :n], self.V[:, :n] = old[0][:, :n], old[1][:, :n], old[2][:, :n]
-        self.L[:, :n, :n] = old[3][:, :n, :n]
-        self.mask[:, :n] = old[4][:, :n]
-
-    # hyperparameters ---------------------------------------------------------------------
-    @property
-    def noise_var(self) -> Tensor:
-        """(S,) observation noise variances."""
-        return self.likelihood.noise.reshape(self.num_nodes).detach()
-
-    @property
-    def lengthscale(self) -> Tensor:
-        return self.covar_module.base_kernel.lengthscale.reshape(self.num_nodes).detach()
-
-    @property
-    def outputscale(self) -> Tensor:
-        return self.covar_module.outputscale.reshape(self.num_nodes).detach()
-
-    def kernel(self, a: Tensor, b: Tensor) -> Tensor:
-        r"""Kernel matrix ``(S, Na, d), (S, Nb, d) -> (S, Na, Nb)``.
-
-        Evaluates the GPyTorch ``ScaleKernel(RBFKernel)`` hyperparameters directly,
-        :math:`\sigma_f^2 \exp(-\|a-b\|^2 / 2 l^2)` (the per-step hot path; equality with
-        ``covar_module(a, b)`` is tested).
-        """
-        with torch.no_grad():
-            ls = self.covar_module.base_kernel.lengthscale.to(a)  # (S, 1, 1)
-            d2 = torch.cdist(a / ls, b / ls).pow(2)  # matmul-based for large inputs: no (Na, Nb, d) tensor
-            return self.covar_module.outputscale.to(a).reshape(-1, 1, 1) * torch.exp(-0.5 * d2)
-
-    # online update -----------------------------------------------------------------------
-    @torch.no_grad()
-    def append(self, x: Tensor, y: Tensor, valid: Tensor | None = None) -> None:
-        r"""Append one example per node, updating the Cholesky factor by one row (:math:`O(n^2)`).
-
-        With :math:`K_n = L L^T`, the new row is :math:`l = L^{-1} k(X, x)` and the new
-        diagonal :math:`d = \sqrt{k(x,x) + \sigma_\epsilon^2 - l^T l}`.
-
-        Args:
-            x: (S, Dx) inputs; y: (S, Dy) outputs; valid: (S,) bool, False = skip (no effect).
-        """
-        s = self.num_nodes
-        if x.shape != (s, self.input_dim) or y.shape != (s, self.output_dim):
-            raise ValueError(f"append expects x (S={s}, {self.input_dim}) and y (S, {self.output_dim})")
-        if valid is None:
-            valid = torch.ones(s, dtype=torch.bool, device=self.device_)
-        valid = valid & torch.isfinite(x).all(-1) & torch.isfinite(y).all(-1)
-        if self.n == self.X.shape[1]:
-            self._grow()
-        n = self.n
-        x = x.to(self.X)
-        xs = x.unsqueeze(1)
-        kxx = self.kernel(xs, xs).reshape(s)
-        last = getattr(self, "_last", None)
-        if n > 0 and last is not None and last[2] == n and _same_input(last[0], xs, last[3]):
-            l = last[1]  # the solve done by predict() at this very input
-        elif n > 0:
-            k = self.kernel(self.X[:, :n], xs).squeeze(-1) * self.mask[:, :n]
-            l = self._solve_lower(k.unsqueeze(-1)).squeeze(-1)
-        else:
-            l = x.new_zeros(s, 0)
-        d2 = kxx + self.noise_var - (l * l).sum(-1)
-        floor = 1e-10 * (kxx + self.noise_var)
-        if self.device_.type == "cpu":  # on CUDA no host round-trip: clamp silently (counted on device)
-            if bool((d2[valid] < floor[valid]).any()):
-                JITTER.record(float((floor - d2).clamp_min(0).max()))
-                warnings.warn("OnlineGP.append: new point nearly dependent on the data; diagonal clamped")
-        else:
-            self.clamped = self.clamped + ((d2 < floor) & valid).sum()
-        d = torch.where(valid, d2.clamp_min(floor).sqrt(), torch.ones_like(d2))
-        l = l * valid.unsqueeze(-1)
-        r = torch.where(valid.unsqueeze(-1), y.to(self.X) - self.prior_mean(xs).squeeze(1), torch.zeros_like(y, dtype=self.X.dtype))
-        # k^T alpha = (L^{-1} k)^T (L^{-1} R) = l^T V: the residual of the new output
-        resid = r - (l.unsqueeze(-2) @ self.V[:, :n]).squeeze(-2)
-        v = resid / d.unsqueeze(-1)
-        # block-inverse update of alpha = K^{-1} R with b = K^{-1} k = L^{-T} l, c = d^2:
-        # alpha_old += -b resid / c ; alpha_new = resid / c       (O(n^2), one solve)
-        alpha = self.alpha
-        if n > 0:
-            full = l.new_zeros(s, self.L.shape[-1], 1)
-            full[:, :n, 0] = l
-            bvec = torch.linalg.solve_triangular(self.L.transpose(-1, -2), full, upper=True)[:, :n, 0]
-        else:
-            bvec = l
-        c = (d * d).unsqueeze(-1)
-        new_alpha = torch.cat([alpha - bvec.unsqueeze(-1) * (resid / c).unsqueeze(1), (resid / c).unsqueeze(1)], dim=1)
-        self.L[:, n, :n] = l
-        self.L[:, n, n] = d
-        self.X[:, n] = torch.where(valid.unsqueeze(-1), x, torch.zeros_like(x))
-        self.R[:, n] = r
-        self.V[:, n] = v * valid.unsqueeze(-1)
-        self.mask[:, n] = valid
-        self.n = n + 1
-        self._alpha = new_alpha
-        self._last = None
-
-    def _solve_lower(self, rhs: Tensor) -> Tensor:
-        """``L^{-1} rhs`` for ``rhs (S, n, k)``, through the full buffer (rows past n are identity)."""
-        n, cap = self.n, self.L.shape[-1]
-        full = rhs.new_zeros(rhs.shape[0], cap, rhs.shape[-1])
-        full[:, :n] = rhs
-        return torch.linalg.solve_triangular(self.L, full, upper=False)[:, :n]
-
-    @torch.no_grad()
-    def refactorize(self) -> None:
-        """Recompute the factor from scratch (after a hyperparameter change)."""
-        n = self.n
-        if n == 0:
-            return
-        X, m = self.X[:, :n], self.mask[:, :n]
-        self.R[:, :n] = torch.where(m.unsqueeze(-1), self.R[:, :n], torch.zeros_like(self.R[:, :n]))
-        K = self.kernel(X, X) * (m.unsqueeze(-1) & m.unsqueeze(-2))
-        diag = torch.where(m, self.noise_var.unsqueeze(-1).expand(-1, n), torch.zeros_like(K[..., 0]))
-        K = K + torch.diag_embed(diag)
-        K = K + torch.diag_embed((~m).to(K.dtype))  # decoupled unit rows for invalid points
-        self.L[:, :n, :n] = safe_cholesky(K)
-        self.V[:, :n] = self._solve_lower(self.R[:, :n])
-        self._alpha = None
-
-    def reset(self) -> None:
-        """Forget all data."""
-        self.n = 0
-        self._alloc(self.X.shape[1])
-
-    @property
-    def alpha(self) -> Tensor:
-        r""":math:`(K + \sigma^2 I)^{-1} (Y - m(X))`, ``(S, n, Dy)``, cached until the next append."""
-        if self._alpha is None:
-            n = self.n
-            self._alpha = torch.linalg.solve_triangular(self.L.transpose(-1, -2), self.V, upper=True)[:, :n]
-        return self._alpha
-
-    # prediction --------------------------------------------------------------------------
-    @torch.no_grad()
-    def predict(
-        self, x: Tensor, jacobian: bool = True, variance: bool = True
-    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        r"""Posterior mean, latent variance and mean Jacobian at ``x``.
-
-        Mean :math:`m(x) + k_*^T \alpha`; latent variance :math:`k(x,x) - k_*^T (K+\sigma^2 I)^{-1} k_*`;
-        Jacobian in closed form for the RBF kernel,
-        :math:`\partial \mu / \partial x = \partial m/\partial x - \sum_a \alpha_a k(x, x_a)(x - x_a)^T / l^2`.
-
-        Cost: one triangular solve against the factor for the variance (memory-bound,
-        ``O(n^2)``); mean and Jacobian use the cached :math:`\alpha`. With a single query
-        per node the solve is reused by :meth:`append` when the next appended input is the
-        point just predicted (as in Algorithm 1, where ŷ^{t-1} is both).
-
-        Args:
-            x: ``(S, N, Dx)`` query points (one batch per node).
-        Returns:
-            mean ``(S, N, Dy)``, var ``(S, N)`` or None, jac ``(S, N, Dy, Dx)`` or None.
-        """
-        n = self.n
-        x = x.to(self.X)
-        s_, nq, dx = x.shape
-        kxx = self.outputscale.unsqueeze(-1).expand(s_, nq)
-        mean = self.prior_mean(x)
-        jac = self.prior_mean_jacobian(x) if jacobian else None
-        self._last = None
-        if n == 0:
-            return mean, (kxx.clone() if variance else None), jac
-        X, m = self.X[:, :n], self.mask[:, :n]
-        ks = self.kernel(X, x) * m.unsqueeze(-1)  # (S, n, N)
-        ls2 = (self.lengthscale**2).reshape(-1, 1, 1, 1)
-        var = None
-        alpha = self.alpha
-        mean = mean + ks.transpose(-1, -2) @ alpha
-        if variance:
-            w = self._solve_lower(ks)
-            var = (kxx - (w * w).sum(-2)).clamp_min(0.0)
-        if jacobian:
-            ksT = ks.transpose(-1, -2)  # (S, N, n)
-            ka = ksT @ alpha  # sum_a k_a alpha_a  (S, N, Dy)
-            # sum_a k_a alpha_a x_a^T  (S, N, Dy, Dx)
-            kax = (ksT.unsqueeze(-1) * alpha.unsqueeze(1)).transpose(-1, -2) @ X.unsqueeze(1)
-            jac = jac - (ka.unsqueeze(-1) * x.unsqueeze(-2) - kax) / ls2
-        if variance and nq == 1:
-            # keep the input itself (not a copy): its storage cannot be reused while referenced,
-            # so pointer + version identify it without a device-to-host comparison
-            self._last = (x, w[..., 0].clone(), n, x._version)
-        return mean, var, jac
-
-    # hyperparameter fitting ----------------------------------------------------------------
-    def fit(self, iters: int = 50, lr: float = 0.05) -> list[float]:
-        """Maximise the exact log marginal likelihood of the current data (GPyTorch objective).
-
-        All outputs share the kernel, so the objective is the sum over outputs and nodes of
-        GPyTorch's ``MultivariateNormal.log_prob``. Refactorises afterwards. Returns the loss curve.
-        """
-        n = self.n
-        if n < 2:
-            return []
-        X, m = self.X[:, :n], self.mask[:, :n]
-        pair = (m.unsqueeze(-1) & m.unsqueeze(-2)).unsqueeze(1)  # (S, 1, n, n)
-        # targets of the GP part: the stored residuals against a fixed (zero/identity) mean, or the
-        # raw outputs when the constant mean is learned alongside the kernel
-        const = self.mean_type == "constant"
-        Y = self.R[:, :n] + (self.constant.detach().unsqueeze(1) if const else 0.0)
-        params = list(self.covar_module.parameters()) + list(self.likelihood.parameters())
-        if const:
-            params.append(self.constant)
-        opt = torch.optim.Adam(params, lr=lr)
-        losses = []
-        eye = torch.eye(n, dtype=X.dtype, device=X.device)
-        for _ in range(int(iters)):
-            opt.zero_grad()
-            K = self.covar_module(X).to_dense().unsqueeze(1) * pair
-            noise = self.likelihood.noise.reshape(-1, 1, 1, 1)
-            mm = m.unsqueeze(1).unsqueeze(-1).to(X.dtype)
-            K = K + eye * (noise * mm + (1 - mm))
-            mu = self.constant.unsqueeze(-1) * m.unsqueeze(1) if const else torch.zeros_like(Y.transpose(-1, -2))
-            dist = gpytorch.distributions.MultivariateNormal(mu, K)
-            loss = -dist.log_prob(Y.transpose(-1, -2) * m.unsqueeze(1)).sum() / max(1, int(m.sum()))
-            loss.backward()
-            opt.step()
-            losses.append(float(loss.detach()))
-        if const:
-            with torch.no_grad():
-                self.R[:, :n] = (Y - self.constant.unsqueeze(1)) * m.unsqueeze(-1)
-        self.refactorize()
-        return losses
 
 
 class GPMotionModel(MotionModel):
@@ -388,7 +42,7 @@ class GPMotionModel(MotionModel):
         noise_fading: fading factor ``b`` in (0, 1) of the ``adaptive`` noise estimate, per training
             episode (a memory of about ``1/(1-b)`` episodes).
         variant: ``exact`` (:class:`OnlineGP`) or a scalable variant of
-            :mod:`dslearn.models.sparse`: ``window`` (option ``window``), ``sgpr`` (``inducing``),
+            :mod:`dslearn.learning.sparse`: ``window`` (option ``window``), ``sgpr`` (``inducing``),
             ``ssgp`` (``features``, ``seed``); options are passed as keywords.
     """
 
@@ -429,8 +83,8 @@ class GPMotionModel(MotionModel):
         self.variant = variant
         if variant == "exact" and not variant_options:
             self.gp = OnlineGP(num_nodes, state_dim, state_dim, outputscale, lengthscale, noise_std, mean, capacity, dtype, device)
-        else:  # scalable variants (dslearn.models.sparse): window | sgpr | ssgp
-            from .sparse import make_online_gp
+        else:  # scalable variants (dslearn.learning.sparse): window | sgpr | ssgp
+            from dslearn.learning.sparse import make_online_gp
 
             if fit_every and variant != "exact":
                 raise ConfigError(f"model.fit_every={fit_every}: hyperparameter fitting is only available for model.variant=exact")
@@ -540,7 +194,7 @@ class GPMotionModel(MotionModel):
     def save(self, path) -> None:
         """Save hyperparameters and the posterior state of every node: the data set (inputs,
         residual targets, mask) for the exact and window GPs, the sufficient statistics for
-        SGPR / SSGP (:meth:`~dslearn.models.sparse.SSGP.state_tensors`)."""
+        SGPR / SSGP (:meth:`~dslearn.learning.sparse.SSGP.state_tensors`)."""
         if not isinstance(self.gp, OnlineGP):
             sparse = {f"sparse.{k}": v for k, v in self.gp.state_tensors().items()}
             torch.save(self._checkpoint(**sparse), path)
@@ -553,7 +207,7 @@ class GPMotionModel(MotionModel):
         """Safe-load what :meth:`save` wrote; checks class, hyperparameter shapes and that the
         saved state has this model's node count, dimensions and variant; the exact and window
         GPs refactorise once."""
-        from ..errors import ConfigError
+        from dslearn.errors import ConfigError
 
         if not isinstance(self.gp, OnlineGP):
             names = self.gp.state_tensors().keys()

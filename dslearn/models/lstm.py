@@ -46,9 +46,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..errors import ConfigError, check_choice, check_positive
-from ..types import AGENT_DIM, StepContext, agents, joint
-from .base import MotionModel
+from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.types import AGENT_DIM, StepContext, agents, joint
+from dslearn.models.base import MotionModel
 
 POOLINGS = ("none", "social")
 CHECKPOINT_FORMAT = "dslearn.lstm/1"

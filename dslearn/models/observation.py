@@ -5,10 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..errors import check_choice, check_positive
-from ..types import AGENT_DIM
-from .base import ObservationModel
-from .gp import OnlineGP
+from dslearn.errors import check_choice, check_positive
+from dslearn.types import AGENT_DIM
+from dslearn.models.base import ObservationModel
+from dslearn.learning.gp import OnlineGP
 
 
 class LinearPositionObservation(ObservationModel):

@@ -7,9 +7,9 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, check_positive
-from ..types import AGENT_DIM, POS, VEL, StepContext, agents, joint
-from .base import MotionModel
+from dslearn.errors import ConfigError, check_positive
+from dslearn.types import AGENT_DIM, POS, VEL, StepContext, agents, joint
+from dslearn.models.base import MotionModel
 
 
 #: default softening radius (m) of the interaction distance, :func:`soft_distance`
@@ -146,7 +146,7 @@ class SocialForce(MotionModel):
         :math:`\sigma_j^2` is the filter's mean position variance of agent ``j`` (``ctx.cov``):
         the interaction with an agent known only vaguely is evaluated at a distance smoothed
         over its uncertainty, an approximation of the expected force under the belief. An agent
-        the node knows nothing about (a diffuse prior, :func:`dslearn.tracker.diffuse_prior`)
+        the node knows nothing about (a diffuse prior, :func:`dslearn.filters.distributed.diffuse_prior`)
         then exerts and feels almost no force and the linearisation couples nothing to it;
         for agents known to centimetres it is the plain model (the softening only acts below
         :math:`\epsilon_{jk}`). Without ``ctx.cov`` (simulation, roll-outs) it is ``softening``.

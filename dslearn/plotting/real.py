@@ -17,7 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from ..io import atomic_write_csv, atomic_write_text  # noqa: E402
+from dslearn.io import atomic_write_csv, atomic_write_text  # noqa: E402
 
 ORDER = ["gp", "gp_increment", "gp_cv", "gp_increment_cv", "lin", "sfm", "lstm"]
 COLORS = {"truth": "black", "gp": "tab:blue", "gp_increment": "tab:blue", "gp_cv": "tab:cyan",
@@ -171,7 +171,7 @@ def fig_trajectories(results: pd.DataFrame, out: Path, max_episodes: int = 3) ->
 
 def real_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     """Write the tables (``.md`` + ``.csv``) and figures into ``out_dir``; return the Markdown."""
-    from ..report import markdown
+    from dslearn.report import markdown
 
     out_dir = Path(out_dir)
     parts = []

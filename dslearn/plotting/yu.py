@@ -14,7 +14,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from ..io import atomic_write_csv, atomic_write_text  # noqa: E402
+from dslearn.io import atomic_write_csv, atomic_write_text  # noqa: E402
 
 MODEL_ORDER = ["gp", "gp_increment", "lin", "sfm"]
 
@@ -56,7 +56,7 @@ def _nodes(s):
 
 def _label_avg(tab: pd.DataFrame) -> pd.DataFrame:
     """The ``avg`` node shown as "sensor average" (the papers' Average row), after the nodes."""
-    from ..report import AVG_LABEL
+    from dslearn.report import AVG_LABEL
 
     if "node" in tab.columns:
         tab["node"] = tab["node"].map(lambda n: AVG_LABEL if n == "avg" else n)
@@ -125,7 +125,7 @@ def fig_training(summary: pd.DataFrame, out: Path) -> Path | None:
 
 
 def yu_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
-    from ..report import markdown
+    from dslearn.report import markdown
 
     out_dir = Path(out_dir)
     parts = []

@@ -13,7 +13,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, check_positive
+from dslearn.errors import ConfigError, check_positive
 
 
 def is_connected(adj: Tensor) -> bool:

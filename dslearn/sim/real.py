@@ -18,8 +18,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, check_positive
-from .network import SensorNetwork, make_network
+from dslearn.errors import ConfigError, check_positive
+from dslearn.sim.network import SensorNetwork, make_network
 
 
 def scene_extent(xy: Tensor) -> tuple[float, float, float, float]:

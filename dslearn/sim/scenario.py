@@ -8,11 +8,11 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, check_positive
-from ..models.social_force import SOFTENING, SocialForce
-from ..streams import Streams, rand, randn
-from ..types import AGENT_DIM, StepContext, agents, joint
-from .network import SensorNetwork
+from dslearn.errors import ConfigError, check_positive
+from dslearn.models.social_force import SOFTENING, SocialForce
+from dslearn.streams import Streams, rand, randn
+from dslearn.types import AGENT_DIM, StepContext, agents, joint
+from dslearn.sim.network import SensorNetwork
 
 
 @dataclass

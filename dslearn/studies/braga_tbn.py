@@ -34,13 +34,18 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from ..config_schema import CONF_DIR
-from ..errors import ConfigError, check_choice, check_positive
-from ..rbpf.cooperation import network_adjacency, parse_strategy, throughput_bytes_per_step, weight_matrix
-from ..rbpf.jmnls import make_params, params_dim, stats_dim
-from ..streams import Streams
-from ..rbpf.tbn import run_tbn
-from ..rbpf.terrain import Scenario, cv_model, make_terrain, simulate
+from dslearn.config_schema import CONF_DIR
+from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.fusion.statistics import (
+    network_adjacency,
+    parse_strategy,
+    throughput_bytes_per_step,
+    weight_matrix,
+)
+from dslearn.models.jmnls import make_params, params_dim, stats_dim
+from dslearn.streams import Streams
+from dslearn.learning.online_em import run_tbn
+from dslearn.sim.terrain import Scenario, cv_model, make_terrain, simulate
 
 PAPER_THROUGHPUT = {"noncooperative": 0.0, "centralised": 4.5, "consensus_1": 4.7, "consensus_5": 23.5,
                     "consensus_10": 46.9}
@@ -192,7 +197,7 @@ def _simulate_and_filter(job: dict, episodes: list[int], diagnostics: bool = Fal
 
 
 def _filter_kwargs(p: dict) -> dict:
-    """The filter / EM options of :func:`dslearn.rbpf.tbn.run_tbn` from the validated config."""
+    """The filter / EM options of :func:`dslearn.learning.online_em.run_tbn` from the validated config."""
     return dict(eta_exponent=p["eta_exponent"], ess_threshold=p["ess_threshold"], sigma_floor=p["sigma_floor"],
                 init_mode=p["init_mode"], regularise=p["regularise"])
 
@@ -289,7 +294,7 @@ def _setup(cfg: DictConfig) -> dict:
 def trace_runs(cfg: DictConfig, episodes, diagnostics: bool = True, nodes: list[int] | None = None):
     """Simulate and filter the given Monte Carlo runs (any subset, any order: each run's result depends only on
     (seed, run index, strategy)) and return ``(scenario, TBNResult)`` with the per-step diagnostics of
-    :func:`dslearn.rbpf.tbn.run_tbn` (ESS, particle spread, velocity error, ...) for lost-track analysis.
+    :func:`dslearn.learning.online_em.run_tbn` (ESS, particle spread, velocity error, ...) for lost-track analysis.
     ``nodes``: filter only these aircraft (noncooperative only); the scenario is restricted to them."""
     job = _setup(cfg)
     return _simulate_and_filter(job, list(episodes), diagnostics=diagnostics, nodes=nodes)
@@ -545,7 +550,7 @@ def benchmark(steps: int = 200, mc_batch: int = 1, num_particles: int = 300, dev
     p = _validate(cfg)
     t0 = time.perf_counter()
     # time the filter only (terrain generation, ~1 s once per study, is excluded)
-    import dslearn.rbpf.tbn as _tbn
+    import dslearn.learning.online_em as _tbn
 
     clock = {}
     orig = _tbn.rbpf_step

@@ -58,10 +58,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
-from ..data.ethucy import SCENES, fold_scenes, load_scene, split_scene, windows
-from ..errors import ConfigError, check_choice, check_positive
-from ..models.gp import GPMotionModel, OnlineGP
-from ..models.lstm import SCHEDULE_KEYS, SocialLSTM, schedule_from_config, train_lstm
+from dslearn.data.ethucy import SCENES, fold_scenes, load_scene, split_scene, windows
+from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.models.gp import GPMotionModel
+from dslearn.learning.gp import OnlineGP
+from dslearn.models.lstm import SCHEDULE_KEYS, SocialLSTM, schedule_from_config, train_lstm
 
 log = logging.getLogger(__name__)
 
@@ -435,7 +436,7 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     df.attrs["learning_curves"] = lc
     path = _curves_path(t.get("curves_file"))
     if path is not None and curves:
-        from ..io import atomic_write_csv
+        from dslearn.io import atomic_write_csv
 
         atomic_write_csv(lc, path)
         log.info("learning curves: %s", path)
@@ -513,8 +514,8 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     Social GAN figures beside it, and a bar chart (``ethucy_forecast.png``); with the run's
     ``learning_curves.csv`` also the convergence table (``ethucy_forecast_convergence.csv``)
     and the learning curves (``learning_curves.png``)."""
-    from ..io import atomic_write_csv, atomic_write_text
-    from ..report import markdown
+    from dslearn.io import atomic_write_csv, atomic_write_text
+    from dslearn.report import markdown
 
     out_dir = Path(out_dir)
     tab = forecast_table(results)

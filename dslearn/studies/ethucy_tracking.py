@@ -51,20 +51,20 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from ..consensus.fusion import FUSIONS, Fusion, make_fusion
-from ..consensus.weights import consensus_weights
-from ..data.episodes import CRITERIA, SPLITS, extract_episodes, split_episodes
-from ..errors import ConfigError, as_list, check_choice, check_positive
-from ..models import ConstantVelocity, LinearPositionObservation
-from ..models.base import MotionModel
-from ..models.gp import OnlineGP
-from ..models.social_force import SocialForce
-from ..sim.network import SensorNetwork
-from ..sim.real import arena_network, scene_extent
-from ..sim.scenario import episode_streams, measure
-from ..sim.scenario import Episodes
-from ..tracker import initial_belief, prediction_error, track, tracking_metrics
-from ..types import JITTER, POS, VEL, StepContext, agents, joint, safe_cholesky
+from dslearn.fusion.strategies import FUSIONS, Fusion, make_fusion
+from dslearn.fusion.weights import consensus_weights
+from dslearn.data.episodes import CRITERIA, SPLITS, extract_episodes, split_episodes
+from dslearn.errors import ConfigError, as_list, check_choice, check_positive
+from dslearn.models import ConstantVelocity, LinearPositionObservation
+from dslearn.models.base import MotionModel
+from dslearn.learning.gp import OnlineGP
+from dslearn.models.social_force import SocialForce
+from dslearn.sim.network import SensorNetwork
+from dslearn.sim.real import arena_network, scene_extent
+from dslearn.sim.scenario import episode_streams, measure
+from dslearn.sim.scenario import Episodes
+from dslearn.filters.distributed import initial_belief, prediction_error, track, tracking_metrics
+from dslearn.types import JITTER, POS, VEL, StepContext, agents, joint, safe_cholesky
 
 log = logging.getLogger(__name__)
 
@@ -196,7 +196,7 @@ def validate(cfg: DictConfig) -> None:
     if t.protocol == "data_size":
         if "lstm" not in models or not {"gp", "gp_cv"} & set(models):
             raise ConfigError("task.models must contain 'lstm' and 'gp' (or 'gp_cv') for task.protocol=data_size")
-    from ..data.ethucy import ALL_SCENES
+    from dslearn.data.ethucy import ALL_SCENES
 
     scenes = as_list("task.scenes", t.scenes, none_as_empty=True)
     for s in scenes:
@@ -247,7 +247,7 @@ def validate(cfg: DictConfig) -> None:
     lstm = t.lstm
     for k in ("embed", "hidden", "obs_len", "pred_len"):
         _int(f"task.lstm.{k}", lstm[k], 1)
-    from ..models.lstm import schedule_from_config
+    from dslearn.models.lstm import schedule_from_config
 
     sched = schedule_from_config(lstm, prefix="task.lstm")
     if "patience" in sched:
@@ -307,7 +307,7 @@ def _episodes_to(ep: Episodes, dtype, device) -> Episodes:
 
 def real_data(cfg: DictConfig, scene_name: str, seed: int, max_train: int, dtype, device) -> Data:
     """Episodes of one ETH/UCY scene, its network and measurements (all seeded by ``seed``)."""
-    from ..data.ethucy import load_scene
+    from dslearn.data.ethucy import load_scene
 
     t = cfg.task
     scene = load_scene(scene_name, root=t.get("data_root"), convention=t.convention)
@@ -358,7 +358,7 @@ def real_data(cfg: DictConfig, scene_name: str, seed: int, max_train: int, dtype
 
 def synthetic_data(cfg: DictConfig, seed: int, max_train: int, dtype, device) -> Data:
     """The Yu synthetic scenario and network (``cfg.scenario``, ``cfg.network``)."""
-    from .yu import build_network, build_scenario
+    from dslearn.studies.yu import build_network, build_scenario
 
     scenario, net = build_scenario(cfg.scenario), build_network(cfg.network)
     test = scenario.sample(int(cfg.task.test_episodes), net, episode_streams(seed, "test", 0, int(cfg.task.test_episodes)))
@@ -401,7 +401,7 @@ class ConstantVelocityMeanGP(OnlineGP):
 
 def _gp(cfg: DictConfig, data: Data, dtype, device, cv_mean: bool = False) -> MotionModel:
     """The GP of ``cfg.model``; with ``cv_mean`` its prior mean is replaced by the CV step."""
-    from .yu import build_motion_model
+    from dslearn.studies.yu import build_motion_model
 
     stub = SimpleNamespace(num_agents=data.num_agents, state_dim=4 * data.num_agents)
     model = build_motion_model(cfg.model, stub, data.network.num_nodes, dtype, device)
@@ -511,7 +511,7 @@ def train_lstm_model(cfg: DictConfig, data: Data, windows: tuple[Tensor, Tensor]
     ``task.lstm`` (the paper's fixed one, or early stopping on held-out episodes); returns
     ``(model, loss curve)``; with early stopping the curve's ``attrs["restored_epoch"]`` is the
     epoch whose weights were kept."""
-    from ..models.lstm import SocialLSTM, holdout_split, schedule_from_config, train_lstm
+    from dslearn.models.lstm import SocialLSTM, holdout_split, schedule_from_config, train_lstm
 
     t = cfg.task
     kw = _lstm_cfg(t)
@@ -726,6 +726,6 @@ def run(cfg: DictConfig) -> pd.DataFrame:
 
 def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     """Tables III–IV analogue (Markdown + CSV), Fig. 4 and Fig. 5 analogues (PNG)."""
-    from ..plotting.real import real_report
+    from dslearn.plotting.real import real_report
 
     return real_report(results, summary, out_dir)

@@ -14,7 +14,7 @@ One run computes all four figures' grids, vectorised over configurations and Mon
 ``variant`` is ``default`` for the main grid (the settings of ``conf/task/jiang_fg.yaml``) or
 the name of an ablation (``task.ablations``), run on the same data; ``paper`` is the paper's
 EKF-FG (``sigma_e^2`` = CRLB at the prediction). Monte Carlo run ``r`` draws its truth and
-noise from its own stream seeded by ``(seed, r)`` (:func:`~dslearn.factorgraph.scenario.run_noise`),
+noise from its own stream seeded by ``(seed, r)`` (:func:`~dslearn.sim.squared_range.run_noise`),
 so its rows do not depend on ``task.mc_runs``.
 
 ``rmse`` rows hold one episode's root-mean-square error per parameter (mean over the M
@@ -35,12 +35,12 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from ..errors import ConfigError, check_choice, check_positive
-from ..factorgraph.crlb import CRLB_FORMS
-from ..factorgraph.identification import GRAPHS, SCHEDULES
-from ..factorgraph.scenario import SquaredRange, polynomial_trajectory, run_noise
-from ..factorgraph.simulation import TrackerSettings, simulate
-from ..factorgraph.tracking import OBS_VAR_MODES
+from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.learning.factor_graph.crlb import CRLB_FORMS
+from dslearn.learning.factor_graph.identification import GRAPHS, SCHEDULES
+from dslearn.sim.squared_range import SquaredRange, polynomial_trajectory, run_noise
+from dslearn.learning.factor_graph.engine import TrackerSettings, simulate
+from dslearn.filters.ekf_fg import OBS_VAR_MODES
 
 MODELS = ("fg_identification", "ekf_fg", "centralized_gn", "centralized_ekf")
 CONSENSUS = {"fg_identification": "gaussian_bp", "ekf_fg": "gaussian_bp", "centralized_gn": "centralized",

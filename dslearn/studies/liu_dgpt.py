@@ -17,10 +17,10 @@ import numpy as np
 import pandas as pd
 import torch
 
-from ..dgpt.aggregation import AGGREGATIONS
-from ..dgpt.scenarios import SCENARIOS, generate, measure, sensor_field
-from ..dgpt.tracker import GP_INPUTS, OPTIMISERS, HyperConfig, track
-from ..errors import ConfigError, as_list, check_choice, check_positive
+from dslearn.fusion.aggregation import AGGREGATIONS
+from dslearn.sim.manoeuvres import SCENARIOS, generate, measure, sensor_field
+from dslearn.filters.dgpt import GP_INPUTS, OPTIMISERS, HyperConfig, track
+from dslearn.errors import ConfigError, as_list, check_choice, check_positive
 
 TASK = "liu_dgpt"
 METRICS = ("nrmse_x_updated", "nrmse_y_updated", "nrmse_x_predictive", "nrmse_y_predictive")

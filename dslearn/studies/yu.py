@@ -20,23 +20,23 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig
 
-from ..consensus.fusion import FUSIONS, make_fusion
-from ..consensus.weights import consensus_weights
-from ..progress import evaluation_bar, training_bar
-from ..errors import ConfigError, check_choice, check_positive
-from ..models import (
+from dslearn.fusion.strategies import FUSIONS, make_fusion
+from dslearn.fusion.weights import consensus_weights
+from dslearn.progress import evaluation_bar, training_bar
+from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.models import (
     ConstantVelocity,
     GPMotionModel,
     GPObservation,
     LinearPositionObservation,
     SocialForce,
 )
-from ..models.base import MotionModel, ObservationModel
-from ..models.social_force import SOFTENING
-from ..sim.network import SensorNetwork, make_network
-from ..sim.scenario import SocialForceScenario, episode_streams
-from ..tracker import initial_belief, prediction_error, track, tracking_metrics
-from ..types import JITTER
+from dslearn.models.base import MotionModel, ObservationModel
+from dslearn.models.social_force import SOFTENING
+from dslearn.sim.network import SensorNetwork, make_network
+from dslearn.sim.scenario import SocialForceScenario, episode_streams
+from dslearn.filters.distributed import initial_belief, prediction_error, track, tracking_metrics
+from dslearn.types import JITTER
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +100,7 @@ def build_motion_model(c: Any, scenario: SocialForceScenario, num_nodes: int, dt
         s = scenario.sfm
         return SocialForce(s.desired.tolist(), s.tau.tolist(), s.alpha.tolist(), s.beta.tolist(), c.noise_std, s.softening).to(device)
     if kind == "gp_aggregated":
-        from ..models.aggregated import build_aggregated_motion
+        from dslearn.models.aggregated import build_aggregated_motion
 
         return build_aggregated_motion(c, scenario.state_dim, num_nodes, dtype, device)
     return GPMotionModel(
@@ -118,7 +118,7 @@ def build_motion_model(c: Any, scenario: SocialForceScenario, num_nodes: int, dt
         capacity=int(c.get("capacity", 256)),  # initial per-node buffer (grows in chunks of 128)
         dtype=dtype,
         device=device,
-        # scalable variants (dslearn.models.sparse; conf/model/gp_{window,sgpr,ssgp}.yaml)
+        # scalable variants (dslearn.learning.sparse; conf/model/gp_{window,sgpr,ssgp}.yaml)
         variant=str(c.get("variant", "exact")),
         noise_fading=float(c.get("noise_fading", 0.9)),
         **{k: c[k] for k in ("window", "inducing", "features", "seed") if c.get(k) is not None},
@@ -152,7 +152,7 @@ class YuStudy:
         """Compose the default configuration (``conf/``) with a few options, without Hydra's app."""
         from hydra import compose, initialize_config_dir
 
-        from ..config_schema import CONF_DIR
+        from dslearn.config_schema import CONF_DIR
 
         conf_dir = str(CONF_DIR)
         ov = [f"model={model}", f"consensus={consensus}"]
@@ -303,7 +303,7 @@ class YuStudy:
 
 
 def _to(ep, dtype, device):
-    from ..sim.scenario import Episodes
+    from dslearn.sim.scenario import Episodes
 
     return Episodes(ep.states.to(device, dtype), ep.meas.to(device, dtype), ep.visible.to(device))
 
@@ -316,6 +316,6 @@ def run(cfg: DictConfig) -> pd.DataFrame:
 
 def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     """Paper-shaped tables and figures for the Yu study."""
-    from ..plotting.yu import yu_report
+    from dslearn.plotting.yu import yu_report
 
     return yu_report(results, summary, out_dir)

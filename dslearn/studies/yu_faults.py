@@ -6,7 +6,7 @@ plus gross measurement outliers with and without chi-square gating. Faults act i
 in test: the GP is learned online through the faulty network.
 
 Builds the scenario, network, models and fusions with the Yu study's builders
-(:mod:`dslearn.studies.yu`); faults come from :mod:`dslearn.faults`. All cells of one fault
+(:mod:`dslearn.studies.yu`); faults come from :mod:`dslearn.fusion.faults`. All cells of one fault
 setting share the same episodes, node-failure schedule, outliers and link-failure draws
 (common random numbers), so differences between fusions and models are not sampling noise.
 
@@ -25,11 +25,11 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from ..config_schema import check_schema
-from ..consensus.fusion import FUSIONS, make_fusion
-from ..consensus.weights import consensus_weights
-from ..errors import ConfigError, check_choice, check_positive
-from ..faults import (
+from dslearn.config_schema import check_schema
+from dslearn.fusion.strategies import FUSIONS, make_fusion
+from dslearn.fusion.weights import consensus_weights
+from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.fusion.faults import (
     LIVE_WEIGHTS,
     NODE_FAIL_MODES,
     FaultyFusion,
@@ -37,12 +37,20 @@ from ..faults import (
     apply_node_failures,
     node_failure_schedule,
 )
-from ..config_schema import CONF_DIR
-from ..filters.information import GATE_STATS
-from ..sim.scenario import episode_streams
-from ..streams import Streams
-from ..tracker import initial_belief, track, tracking_metrics
-from .yu import DTYPES, _resolve_device, _to, build_motion_model, build_network, build_observation, build_scenario
+from dslearn.config_schema import CONF_DIR
+from dslearn.filters.information import GATE_STATS
+from dslearn.sim.scenario import episode_streams
+from dslearn.streams import Streams
+from dslearn.filters.distributed import initial_belief, track, tracking_metrics
+from dslearn.studies.yu import (
+    DTYPES,
+    _resolve_device,
+    _to,
+    build_motion_model,
+    build_network,
+    build_observation,
+    build_scenario,
+)
 
 log = logging.getLogger(__name__)
 CONF = CONF_DIR
@@ -268,7 +276,7 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..report import markdown
+    from dslearn.report import markdown
 
     out_dir = Path(out_dir)
     r = results[(results.metric == "track_err") & (results.node == "alive")]

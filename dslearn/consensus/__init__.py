@@ -1,1 +1,0 @@
-"""Consensus weights and fusion strategies."""

@@ -1,0 +1,1 @@
+"""Learning: GP backends, LSTM training, online EM, factor-graph identification, GP experts."""

@@ -1,0 +1,134 @@
+r"""The validation layer's parts: range-checked schema fields, the task registry, the checks.
+
+A study's configuration is checked in three stages, all before any work starts:
+
+1. **Keys and types, at composition.** Every task has a structured-config schema (a dataclass)
+   stored in Hydra's ConfigStore as ``schema/task/<name>`` and linked from its config file
+   (``conf/task/<name>.yaml`` starts with ``defaults: [/schema/task/<name>@_here_, _self_]``).
+   Hydra then refuses an unknown key or a value of the wrong type while it composes.
+2. **Ranges and choices, declared on the fields.** ``ranged(default, ge=0)`` /
+   ``ranged("a", choices=(...))`` put the rule in the field's metadata; :func:`check_ranges`
+   applies every rule of a schema (recursively, also to each element of a list with
+   ``each=True``) and raises :class:`~dslearn.errors.ConfigError` naming the field and the
+   allowed values.
+3. **Cross-field rules**, which a schema cannot state, in the one ``check(cfg)`` function a task
+   registers with :func:`register_task`.
+
+Constructors then check only what needs the built objects (shapes, connectivity).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Callable
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from dslearn.errors import ConfigError
+
+_RULES = ("ge", "gt", "le", "lt", "choices", "integer", "each", "min_len", "max_len", "nullable")
+
+
+def ranged(default: Any = dataclasses.MISSING, *, factory: Callable[[], Any] | None = None, **rules) -> Any:
+    """A dataclass field with range / choice rules (``ge gt le lt choices min_len max_len``; ``each=True``
+    applies the number/choice rules to every element of a list)."""
+    bad = set(rules) - set(_RULES)
+    if bad:
+        raise TypeError(f"unknown rule(s) {sorted(bad)}; known: {_RULES}")
+    if factory is not None:
+        return dataclasses.field(default_factory=factory, metadata=rules)
+    return dataclasses.field(default=default, metadata=rules)
+
+
+def _fmt(v) -> str:
+    return repr(v) if not isinstance(v, float) or math.isfinite(v) else str(v)
+
+
+def _check_value(name: str, v, rules: dict) -> None:
+    if v is None:
+        return
+    choices = rules.get("choices")
+    if choices is not None and v not in choices:
+        raise ConfigError(f"{name}={v!r} is not allowed; choose one of {list(choices)}")
+    numeric = isinstance(v, (int, float)) and not isinstance(v, bool)
+    if not numeric:
+        return
+    if isinstance(v, float) and not math.isfinite(v) and any(k in rules for k in ("ge", "gt", "le", "lt")):
+        raise ConfigError(f"{name}={v} must be a finite number")
+    lo_ge, lo_gt, hi_le, hi_lt = (rules.get(k) for k in ("ge", "gt", "le", "lt"))
+    bounds = " and ".join(
+        s for s in (
+            f">= {_fmt(lo_ge)}" if lo_ge is not None else "", f"> {_fmt(lo_gt)}" if lo_gt is not None else "",
+            f"<= {_fmt(hi_le)}" if hi_le is not None else "", f"< {_fmt(hi_lt)}" if hi_lt is not None else "",
+        ) if s
+    )
+    if ((lo_ge is not None and v < lo_ge) or (lo_gt is not None and v <= lo_gt)
+            or (hi_le is not None and v > hi_le) or (hi_lt is not None and v >= hi_lt)):
+        raise ConfigError(f"{name}={v!r} must be {bounds}")
+
+
+def check_ranges(node: Any, schema: type, prefix: str) -> None:
+    """Apply the rules declared on ``schema``'s fields to ``node`` (a DictConfig / dict)."""
+    for f in dataclasses.fields(schema):
+        if isinstance(node, (DictConfig, dict)) and f.name not in node:
+            continue
+        v = node[f.name]
+        name = f"{prefix}.{f.name}" if prefix else f.name
+        rules = dict(f.metadata)
+        sub = f.type if isinstance(f.type, type) and dataclasses.is_dataclass(f.type) else None
+        if sub is None and dataclasses.is_dataclass(f.default_factory if f.default_factory is not dataclasses.MISSING else None):
+            sub = f.default_factory
+        if sub is not None and v is not None:
+            check_ranges(v, sub, name)
+            continue
+        if isinstance(v, (ListConfig, list, tuple)):
+            n = len(v)
+            if "min_len" in rules and n < rules["min_len"]:
+                raise ConfigError(f"{name} has {n} entries; it needs at least {rules['min_len']}")
+            if "max_len" in rules and n > rules["max_len"]:
+                raise ConfigError(f"{name} has {n} entries; it allows at most {rules['max_len']}")
+            if rules.get("each"):
+                for i, x in enumerate(v):
+                    _check_value(f"{name}[{i}]", x, rules)
+            continue
+        if rules.get("each"):
+            continue
+        _check_value(name, v, rules)
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskSpec:
+    name: str
+    schema: type
+    check: Callable[[DictConfig], None] | None = None
+
+
+#: task name -> its schema and cross-field check (filled by :func:`register_task`)
+TASKS: dict[str, TaskSpec] = {}
+
+
+def register_task(name: str, schema: type, check: Callable[[DictConfig], None] | None = None) -> type:
+    """Store ``schema`` as ``schema/task/<name>`` in Hydra's ConfigStore and remember its check."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(group="schema/task", name=name, node=schema)
+    TASKS[name] = TaskSpec(name, schema, check)
+    return schema
+
+
+def validate_task(cfg: DictConfig) -> None:
+    """Ranges of the task's schema, then its cross-field check (no-op for an unregistered task)."""
+    spec = TASKS.get(str(cfg.task.name))
+    if spec is None:
+        return
+    check_ranges(cfg.task, spec.schema, "task")
+    if spec.check is not None:
+        spec.check(cfg)
+
+
+def to_plain(node: Any) -> Any:
+    """A resolved plain container of ``node`` (DictConfig / ListConfig) or ``node`` itself."""
+    if isinstance(node, (DictConfig, ListConfig)):
+        return OmegaConf.to_container(node, resolve=True)
+    return node

@@ -1,0 +1,1 @@
+"""Diagnostic commands (not studies): `python -m dslearn.tools.<name>`."""
