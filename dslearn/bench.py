@@ -235,7 +235,7 @@ def _network_cfg(nodes: int, steps: int, model: str = "gp_increment"):
 
 
 def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str = "cpu") -> list[dict]:
-    from dslearn.studies.yu import YuStudy, _to, DTYPES
+    from dslearn.studies.yu import YuStudy
     from dslearn.filters.distributed import initial_belief, track
 
     cfg = _network_cfg(nodes, steps)
@@ -243,10 +243,10 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
     study = YuStudy.from_config(cfg)
     scenario, network, model, obs, fusion = study.build()
     ctx = scenario.ctx()
-    ep = _to(scenario.sample(1, network, torch.Generator().manual_seed(2)), DTYPES["float64"], device)
-    init = initial_belief(ep, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
+    ep = scenario.sample(1, network, torch.Generator().manual_seed(2)).to(torch.float64, device)
+    init = initial_belief(ep.measurements, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
     t0 = time.perf_counter()
-    res = track(ep, network, model, obs, fusion, ctx, init, learn=True)
+    res = track(ep.measurements, network, model, obs, fusion, ctx, init, learn=True)
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     wall = time.perf_counter() - t0
@@ -264,13 +264,13 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
         part = Episodes(ep.states[:, : ref_steps + 1].cpu(), ep.meas[:, :, : ref_steps + 1].cpu(), ep.visible[:, :, : ref_steps + 1].cpu())
         ref = ReferenceYu(cfg)
         t0 = time.perf_counter()
-        ref._track_one(part, 0, ref_nodes, fusion, fusion.weights.double(), float(obs.noise_std) ** 2,
+        ref._track_one(part.measurements, 0, ref_nodes, fusion, fusion.weights.double(), float(obs.noise_std) ** 2,
                        init[0][:, 0].cpu(), init[1][:, 0].cpu(), learn=True, gate=None)
         t_ref = time.perf_counter() - t0
         part_fast = Episodes(ep.states[:, : ref_steps + 1], ep.meas[:, :, : ref_steps + 1], ep.visible[:, :, : ref_steps + 1])
         _, network2, model2, obs2, fusion2 = study.build()
         t0 = time.perf_counter()
-        track(part_fast, network2, model2, obs2, fusion2, ctx, init, learn=True)
+        track(part_fast.measurements, network2, model2, obs2, fusion2, ctx, init, learn=True)
         t_fast = time.perf_counter() - t0
         row.update(reference_s=t_ref, ratio=t_ref / t_fast,
                    reference_note=f"both timed on the first {ref_steps} steps only (ratio of those)")
@@ -414,6 +414,44 @@ def plan(workloads, quick: bool, a) -> list:
                             (["task=liu_dgpt"], "default run")):
             steps.append(("item_study", dict(args=args, label=label)))
     return steps
+
+
+def eta_measure(model: str = "gp_increment", episodes: int = 150) -> list[str]:
+    """Measure the CPU time of each online-learning episode of the Yu study and compare the
+    ETA a plain bar and the cost-weighted bar would show with the true remaining time
+    (``dslearn-bench eta``; one thread)."""
+    import numpy as np
+    import torch
+
+    from dslearn.filters.distributed import initial_belief, track as track_episode
+    from dslearn.progress import episode_costs
+    from dslearn.studies.yu import YuStudy
+
+    torch.set_num_threads(1)
+    study = YuStudy.from_options(model=model, consensus="hybrid", train_episodes=episodes, test_episodes=2)
+    c = study.cfg
+    scenario, network, m, obs, fusion = study.build()
+    _, train = study.sample(scenario, network, torch.float64, torch.device("cpu"))
+    ctx = scenario.ctx()
+    ts = []
+    for k in range(episodes):
+        ep = train.select(slice(k, k + 1)).measurements
+        init = initial_belief(ep, network, ctx.dt, fusion, scenario.area, c.filter.prior_pos_std, c.filter.prior_vel_std)
+        t = time.process_time()
+        track_episode(ep, network, m, obs, fusion, ctx, init, learn=True)
+        ts.append(time.process_time() - t)
+    ts = np.array(ts)
+    costs = np.array(episode_costs(episodes, scenario.steps, c.model))
+    out = [f"{model}: {episodes} episodes, CPU {ts.sum():.1f} s, first 5 {ts[:5].mean():.3f} s/episode, "
+           f"last 5 {ts[-5:].mean():.3f} s/episode"]
+    for frac in (0.1, 0.2, 0.5):
+        j = max(1, int(frac * episodes))
+        el, true = ts[:j].sum(), ts[j:].sum()
+        plain = el / j * (episodes - j)
+        weighted = el * costs[j:].sum() / costs[:j].sum()
+        out.append(f"after {j}: true remaining {true:.1f} s, plain ETA {plain:.1f} s ({true / plain:.2f}x optimistic), "
+                   f"weighted ETA {weighted:.1f} s (true/weighted {true / weighted:.2f})")
+    return out
 
 
 def main(argv=None) -> None:

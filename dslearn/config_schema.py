@@ -91,6 +91,8 @@ class TaskHead:
 
 @dataclass
 class ScenarioSchema:
+    _target_: Optional[str] = None  # the class / factory Hydra instantiates (dslearn.compose)
+    _partial_: bool = False
     # nested lists: List[Any] (OmegaConf does not convert ints inside nested typed lists); checked below
     desired_velocities: List[Any] = field(default_factory=lambda: [[1.0, -1.0], [-1.0, -1.0]])
     start_corners: List[Any] = field(default_factory=lambda: [[1.5, 5.0], [5.0, 5.0]])
@@ -107,6 +109,8 @@ class ScenarioSchema:
 
 @dataclass
 class NetworkSchema:
+    _target_: Optional[str] = None  # the class / factory Hydra instantiates (dslearn.compose)
+    _partial_: bool = False
     num_sensors: int = 4
     num_comm: int = 6
     area: List[float] = field(default_factory=lambda: [0.0, 8.0, 0.0, 8.0])
@@ -121,8 +125,9 @@ class NetworkSchema:
 
 @dataclass
 class ModelSchema:
+    _target_: Optional[str] = None  # the class / factory Hydra instantiates (dslearn.compose)
+    _partial_: bool = False
     name: str = "gp"
-    kind: Optional[str] = None
     noise_std: float = 0.5
     # GP models
     outputscale: Optional[float] = None
@@ -149,6 +154,8 @@ class ModelSchema:
 
 @dataclass
 class ObservationSchema:
+    _target_: Optional[str] = None  # the class / factory Hydra instantiates (dslearn.compose)
+    _partial_: bool = False
     name: str = "linear"
     noise_std: float = 0.2
     outputscale: Optional[float] = None
@@ -159,6 +166,8 @@ class ObservationSchema:
 
 @dataclass
 class ConsensusSchema:
+    _target_: Optional[str] = None  # the class / factory Hydra instantiates (dslearn.compose)
+    _partial_: bool = False
     name: str = "hybrid"
     iterations: int = 4
     weights: str = "uniform"
@@ -178,6 +187,7 @@ class FilterSchema:
     prior_pos_std: float = 1000.0
     prior_vel_std: float = 1000.0
     learn_gate_std: Optional[float] = 2.0
+    predict: Optional[Any] = None  # the prediction step ({_target_: ...}: EKF or unscented)
 
 
 GROUP_SCHEMAS = {
@@ -305,6 +315,8 @@ def validate_config(cfg: DictConfig) -> None:
     check_entry(cfg.task.entry)
     if cfg.task.name in CORE_TASKS:
         validate_core(cfg)
+    validate_task(cfg)
+    if cfg.task.name in CORE_TASKS:
         check_memory(cfg, r.max_memory_gb)
 
 
@@ -519,6 +531,11 @@ def validate_core(cfg: DictConfig) -> None:
                 f"data.eval_at contains {bad}, but only data.train_episodes={da.train_episodes} training "
                 f"episodes are run; use values in 0..{da.train_episodes}"
             )
+    min_train = da.min_train_episodes or 0
+    if da.train_episodes < min_train:
+        raise ConfigError(
+            f"data.train_episodes={da.train_episodes} is too few for study {cfg.get('study')!r}: it needs >= {min_train}"
+        )
     # filter
     check_positive("filter.prior_pos_std", fi.prior_pos_std)
     check_positive("filter.prior_vel_std", fi.prior_vel_std)
@@ -543,3 +560,6 @@ def _check_pairs(name: str, value, kind) -> None:
             if isinstance(x, bool) or not isinstance(x, (int, float)) or x != x or x in (float("inf"), float("-inf")) \
                     or (kind is int and float(x) != int(x)):
                 raise ConfigError(f"{name}[{i}]={list(v)!r} must hold two finite {'integers' if kind is int else 'numbers'}")
+
+
+from dslearn.schemas import validate_task  # noqa: E402  (last: registers every task schema, which may need CONF_DIR)

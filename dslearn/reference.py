@@ -28,8 +28,11 @@ from torch import Tensor
 
 from dslearn.errors import ConfigError
 from dslearn.models import GPMotionModel
-from dslearn.studies.yu import YuStudy, _resolve_device, DTYPES
-from dslearn.filters.distributed import TrackResult, tracking_metrics
+from dslearn.compose import build_parts
+from dslearn.filters.distributed import TrackResult, initial_belief
+from dslearn.learning.online import algorithm1
+from dslearn.metrics import metric_rows, tracking_metrics
+from dslearn.sim.scenario import sample_split
 from dslearn.types import AGENT_DIM, safe_cholesky, spd_inverse
 
 
@@ -113,15 +116,26 @@ class _ParametricRef:
         pass
 
 
-class ReferenceYu(YuStudy):
-    """The Yu study through the naive implementation (same config, data and seeds as :class:`YuStudy`)."""
+class ReferenceYu:
+    """The Yu study through the naive implementation (same config, parts, data and seeds as
+    :class:`dslearn.studies.yu.YuStudy`, the same Algorithm 1 loop; its own per-node filter)."""
+
+    def __init__(self, cfg):
+        self.cfg = cfg
+
+    @classmethod
+    def from_config(cls, cfg) -> "ReferenceYu":
+        return cls(cfg)
+
+    def checkpoints(self) -> list[int]:
+        ev = self.cfg.data.get("eval_at")
+        return [int(self.cfg.data.train_episodes)] if ev is None else sorted({int(v) for v in ev})
 
     def run(self, progress: bool = False) -> pd.DataFrame:
         c = self.cfg
-        if c.get("threads"):
-            torch.set_num_threads(int(c.threads))
         torch.manual_seed(int(c.seed))
-        scenario, network, model, obs, fusion = self.build()
+        p = build_parts(c)
+        scenario, network, model, obs, fusion = p.scenario, p.network, p.model, p.observation, p.fusion
         if obs.learnable or c.observation.name != "linear":
             raise ConfigError(f"observation.name={c.observation.name!r}: the reference implementation supports 'linear' only")
         if fusion.name not in ("individual", "hybrid", "cm", "ci", "centralized"):
@@ -130,9 +144,9 @@ class ReferenceYu(YuStudy):
             raise ConfigError("model.noise=adaptive: the reference implementation supports latent and predictive only")
         if getattr(model, "fit_every", 0) or getattr(model, "variant", "exact") != "exact":
             raise ConfigError("model: the reference implementation supports the exact GP with fixed hyperparameters only (variant=exact, fit_every=0)")
-        dtype, device = DTYPES[c.dtype], _resolve_device(c.device)
+        dtype = p.dtype
         ctx = scenario.ctx()
-        test, train = self.sample(scenario, network, dtype, device)
+        test, train = sample_split(scenario, network, int(c.seed), c.data.test_episodes, c.data.train_episodes, dtype, p.device)
         S = network.num_nodes
         if isinstance(model, GPMotionModel):
             mc = c.model
@@ -140,37 +154,39 @@ class ReferenceYu(YuStudy):
         else:
             nodes = [_ParametricRef(model, ctx)] * S
         self.ref_nodes = nodes
-        from dslearn.filters.distributed import initial_belief
-
         gate = c.filter.get("learn_gate_std")
         W = fusion.weights.to(dtype)
         sig2 = float(obs.noise_std) ** 2
         learnable = model.learnable
         checkpoints = self.checkpoints() if learnable else [int(c.data.train_episodes)]
-        frames, seen = [], 0
-        for k in checkpoints:
-            while learnable and seen < k:
-                ep = train.select(slice(seen, seen + 1))
-                m0, o0 = initial_belief(ep, network, ctx.dt, fusion, scenario.area, c.filter.prior_pos_std, c.filter.prior_vel_std)
-                self._track_one(ep, 0, nodes, fusion, W, sig2, m0[:, 0], o0[:, 0], learn=True, gate=gate)
-                seen += 1
-            # evaluation: one test episode at a time
-            m0, o0 = initial_belief(test, network, ctx.dt, fusion, scenario.area, c.filter.prior_pos_std, c.filter.prior_vel_std)
+
+        def init(ep):
+            return initial_belief(ep, network, ctx.dt, fusion, scenario.area, c.filter.prior_pos_std, c.filter.prior_vel_std)
+
+        def learn(i: int) -> None:
+            ep = train.measurements.select(slice(i, i + 1))
+            m0, o0 = init(ep)
+            self._track_one(ep, 0, nodes, fusion, W, sig2, m0[:, 0], o0[:, 0], learn=True, gate=gate)
+
+        def evaluate(k: int) -> pd.DataFrame:  # one test episode at a time
+            meas = test.measurements
+            m0, o0 = init(meas)
             means, infos = [], []
             for b in range(len(test)):
-                mb, ob = self._track_one(test, b, nodes, fusion, W, sig2, m0[:, b], o0[:, b], learn=False, gate=None)
+                mb, ob = self._track_one(meas, b, nodes, fusion, W, sig2, m0[:, b], o0[:, b], learn=False, gate=None)
                 means.append(mb)
                 infos.append(ob)
             res = TrackResult(torch.stack(means, 1), torch.stack(infos, 1))
             metrics = tracking_metrics(res, test.states)
             metrics["pred_err"] = self._prediction_error(nodes, test.states, model.learnable, S)
-            frames.append(self._frame(metrics, network, fusion, k))
-        return pd.concat(frames, ignore_index=True)
+            return metric_rows(metrics, network, model=c.model.name, consensus=fusion.name, train_seen=int(k))
+
+        return algorithm1(learn, checkpoints, evaluate, learnable)
 
     # ------------------------------------------------------------------------------------
     def _track_one(self, ep, b, nodes, fusion, W, sig2, y0, o0, learn, gate):
         """One episode ``b``; ``y0 (S, Dx)``, ``o0 (S, Dx, Dx)``. Returns ``(S, K+1, Dx)``, ``(S, K+1, Dx, Dx)``."""
-        S, K = len(nodes), ep.states.shape[1] - 1
+        S, K = len(nodes), ep.steps
         dx = y0.shape[-1]
         A = dx // AGENT_DIM
         y = [y0[i].clone() for i in range(S)]
@@ -258,24 +274,6 @@ class ReferenceYu(YuStudy):
         if not per_node:
             out[:] = out[0]
         return out
-
-    def _frame(self, metrics, network, fusion, seen):
-        c = self.cfg
-        rows = []
-        for name, val in metrics.items():
-            s, b = val.shape
-            rows.append(pd.DataFrame({
-                "node": [network.names[i] for i in range(s) for _ in range(b)],
-                "node_kind": ["sensor" if network.is_sensor[i] else "comm" for i in range(s) for _ in range(b)],
-                "episode": list(range(b)) * s,
-                "metric": name,
-                "value": val.detach().cpu().double().reshape(-1).numpy(),
-            }))
-        df = pd.concat(rows, ignore_index=True)
-        df.insert(0, "model", c.model.name)
-        df.insert(1, "consensus", fusion.name)
-        df.insert(2, "train_seen", int(seen))
-        return df
 
 
 def run_reference(cfg) -> pd.DataFrame:

@@ -28,6 +28,7 @@ import pandas as pd
 
 from dslearn.errors import DataFormatError
 from dslearn.io import atomic_write_csv, atomic_write_text, load_results
+from dslearn.reports.tables import AVG_LABEL, markdown  # noqa: F401  (markdown: also the public helper)
 
 #: units of the metrics (``"1"`` = dimensionless); names ending in ``_s`` / ``_m`` / ``_frac`` /
 #: ``_kb`` get s / m / 1 / kB without an entry here
@@ -52,7 +53,6 @@ METRIC_UNITS: dict[str, str] = {
 #: display names where the machine name would mislead
 METRIC_NAMES: dict[str, str] = {"nees": "NEES/Dx"}
 #: display label of the ``avg`` node (the papers' "Average" row: the mean over sensing nodes)
-AVG_LABEL = "sensor average"
 
 
 def metric_unit(metric: str) -> str | None:
@@ -166,15 +166,6 @@ def _has_tabulate() -> bool:
         return True
     except ImportError:
         return False
-
-
-def markdown(df: pd.DataFrame) -> str:
-    """DataFrame -> GitHub Markdown table (no extra dependency)."""
-    cols = [str(c) for c in df.columns]
-    lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
-    for row in df.itertuples(index=False):
-        lines.append("| " + " | ".join(str(v) for v in row) + " |")
-    return "\n".join(lines)
 
 
 def seed_summary(results: pd.DataFrame) -> pd.DataFrame | None:

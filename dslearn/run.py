@@ -217,8 +217,13 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
     fn = resolve_entry(cfg.task.entry)
     started = _dt.datetime.now(_dt.timezone.utc)
     t0 = time.perf_counter()
-    with WarningLedger() as ledger:
-        df = fn(cfg)
+    import inspect
+
+    from dslearn.diagnostics import Diagnostics
+
+    takes_diag = "diagnostics" in inspect.signature(fn).parameters
+    with Diagnostics() as diag, WarningLedger() as ledger:
+        df = fn(cfg, diagnostics=diag) if takes_diag else fn(cfg)
     wall = time.perf_counter() - t0
     if not isinstance(df, pd.DataFrame) or not {"metric", "value"} <= set(df.columns):
         raise RuntimeError(f"task {cfg.task.entry} must return a tidy DataFrame with 'metric' and 'value' columns")
@@ -231,6 +236,7 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
     text = results_text(df)
     atomic_write_text(out_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     jitter = max(ledger.total, int(df.attrs.get("jitter_events", 0)))
+    diag.set_jitter(jitter, ledger.total_max)
     meta = {
         "dslearn_version": __version__,
         "git_commit": _git_commit(),
@@ -246,6 +252,7 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
         "jitter_events": jitter,
         "jitter_max": ledger.total_max,
         "argv": sys.argv[1:],
+        "diagnostics": diag.as_dict(),  # one object for every study: jitter, gating, timings
         **_hydra_job(),
     }
     if jitter:

@@ -358,19 +358,33 @@ def test_bad_entry_and_network(make_cfg):
 
 
 def test_yu_faults_task_checks(make_cfg):
-    from dslearn.studies.yu_faults import validate
+    """Ranges and choices declared on the task schema (dslearn.schemas.yu_faults) name the field."""
+    from dslearn.config_schema import validate_config
 
     for ov, msg in (
-        (["task.link_fail=[0.1,1.5]"], "task.link_fail contains 1.5"),
-        (["task.fusions=[hybrid,gossip]"], "task.fusions[]='gossip' is not allowed"),
+        (["task.link_fail=[0.1,1.5]"], "task.link_fail[1]=1.5 must be >= 0.0 and <= 1.0"),
+        (["task.fusions=[hybrid,gossip]"], "task.fusions[1]='gossip' is not allowed; choose one of"),
         (["task.models=[lin,nn]"], "task.models contains 'nn'"),
         (["task.node_fail_mode=sometimes"], "task.node_fail_mode='sometimes' is not allowed"),
-        (["task.gate_prob=1.0"], "task.gate_prob=1.0 must be in (0, 1)"),
-        (["+task.typo=1"], "task.typo: unknown key"),
+        (["task.gate_prob=1.0"], "task.gate_prob=1.0 must be > 0.0 and < 1.0"),
+        (["task.joint=[[0.3,2.0]]"], "task.joint contains [0.3, 2.0]"),
     ):
         with pytest.raises(ConfigError) as e:
-            validate(make_cfg("experiment=yu_faults", *ov))
+            validate_config(make_cfg("experiment=yu_faults", *ov))
         assert msg in str(e.value), (ov, str(e.value))
+
+
+def test_task_schema_rejects_unknown_keys_and_types_at_composition(make_cfg):
+    """The task's schema is linked from its config file: Hydra refuses an unknown key or a wrong type."""
+    from hydra.errors import ConfigCompositionException
+
+    from dslearn.config_schema import validate_config
+
+    for ov in (["task.typo=1"], ["task.train_episodes=abc"], ["task.link_fail=[a]"]):
+        with pytest.raises(ConfigCompositionException):
+            make_cfg("experiment=yu_faults", *ov)
+    with pytest.raises(ConfigError, match=r"task\.typo: unknown key"):  # '+' bypasses Hydra's check, not ours
+        validate_config(make_cfg("experiment=yu_faults", "+task.typo=1"))
 
 
 def test_result_tables(tmp_path):

@@ -29,6 +29,8 @@ from dslearn.learning.experts import (
 from dslearn.sim.manoeuvres import generate_s1, generate_s2, generate_s3, s3_turn_rates, singer_sigma
 from dslearn.filters.dgpt import HyperConfig, _window, keyed_uniform, track
 from dslearn.errors import ConfigError
+from dslearn.reports import liu_dgpt as liu_report
+from dslearn.schemas import validate_task
 from dslearn.studies import liu_dgpt
 
 D = torch.float64
@@ -382,22 +384,17 @@ def test_s3_turn_rates():
 
 
 # ------------------------------------------------------------------ study end to end + config
-def _cfg(**task):
-    base = OmegaConf.load("conf/task/liu_dgpt.yaml")
-    base.mc_runs = 2
-    base.batch_runs = 1  # two chunks: the second has no trace rows
-    base.num_steps = 14
-    base.num_sensors = 60
-    base.area_size = 400.0
-    base.scenarios = ["s1", "s3"]
-    base.noises = [1.0, 4.0]
-    base.hyper.iters = 1
-    base.hyper.iters_first = 2
-    base.trace = {"scenario": "s1", "noise": 4.0, "episodes": 1}
+def _cfg(*overrides, **task):
+    """A small composed + checked config (Hydra, the task schema); ``task`` keys set afterwards."""
+    cfg = _compose("task=liu_dgpt", "seed=3", "progress=false", "task.mc_runs=2",
+                   "task.batch_runs=1",  # two chunks: the second has no trace rows
+                   "task.num_steps=14", "task.num_sensors=60", "task.area_size=400", "task.scenarios=[s1,s3]",
+                   "task.noises=[1.0,4.0]", "task.hyper.iters=1", "task.hyper.iters_first=2",
+                   "task.trace.scenario=s1", "task.trace.noise=4.0", "task.trace.episodes=1", *overrides)
     for k, v in task.items():
-        OmegaConf.update(base, k, v)
-    return OmegaConf.create({"seed": 3, "device": "cpu", "dtype": "float64", "progress": False,
-                             "task": base})
+        OmegaConf.update(cfg.task, k, v)
+    validate_task(cfg)
+    return cfg
 
 
 @pytest.mark.parametrize("gp_input", ["temporal", "spatiotemporal"])
@@ -408,7 +405,7 @@ def test_tiny_end_to_end(gp_input, tmp_path):
     assert df["value"].dtype == float
     sc = df[df["step"] < 0]
     # 2 scenarios x 2 noises x 2 runs x 6 methods
-    for met in liu_dgpt.METRICS + ("ucb_coverage",):
+    for met in liu_report.METRICS + ("ucb_coverage",):
         sub = sc[sc["metric"] == met]
         assert len(sub) == 2 * 2 * 2 * 6
         assert sub["value"].notna().all() and (sub["value"] >= 0).all()
@@ -419,7 +416,7 @@ def test_tiny_end_to_end(gp_input, tmp_path):
         df2 = liu_dgpt.run(_cfg(gp_input=gp_input))
         pd.testing.assert_frame_equal(df.reset_index(drop=True), df2.reset_index(drop=True))
     df["task"] = "liu_dgpt"
-    md = liu_dgpt.report(df, df, tmp_path)
+    md = liu_report.report(df, df, tmp_path)
     assert "DGPT-rBCM" in md and "DGPT-grBCM" in md and any(p.suffix == ".png" for p in tmp_path.iterdir())
 
 
@@ -427,12 +424,11 @@ def test_tiny_end_to_end(gp_input, tmp_path):
     ("gp_input", "spatial"), ("aggregations", ["poe", "moe"]), ("aggregations", []),
     ("window.s1", 0), ("noises", [1.0, -2.0]), ("ucb_delta", 1.5), ("mc_runs", 0),
     ("hyper.optimizer", "lbfgs"), ("scenarios", ["s4"]), ("hyper.tol", 0.0), ("hyper.max_iters", 0),
-    ("hyper.gap_check", "yes"), ("hyper.init_noise", 1e-6), ("hyper.max_lengthscale", 5.0),
-    ("hyper.maxiter", 5),
+    ("hyper.init_noise", 1e-6), ("hyper.max_lengthscale", 5.0),
 ])
 def test_bad_input_raises_config_error(field, value):
-    with pytest.raises(ConfigError, match=field.split(".")[0]):
-        liu_dgpt.run(_cfg(**{field: value}))
+    with pytest.raises(ConfigError, match=f"task.{field}"):  # the schema's ranges / the task's check
+        _cfg(**{field: value})
 
 
 # ------------------------------------------------------------------ Hydra spelling (issue 4, part 7)
@@ -446,27 +442,34 @@ def _compose(*overrides):
         return compose("config", overrides=list(overrides))
 
 
+def _plan(cfg):
+    validate_task(cfg)
+    return liu_dgpt.plan(cfg)
+
+
 @pytest.mark.parametrize("base", ["experiment=liu_table1", "experiment=liu_table2", "task=liu_dgpt"])
 def test_hydra_cell_spelling_selects_one_cell(base):
     cfg = _compose(base, "tracker=dgpt", "aggregation=rbcm", "gp_input=spatiotemporal", "scenario=s3",
                    "noise=2")
-    p = liu_dgpt.validate(cfg)
+    validate_task(cfg)
+    p = liu_dgpt.plan(cfg)
     assert p["gp_input"] == "spatiotemporal" and p["aggregations"] == ["rbcm"]
     assert p["scenarios"] == ["s3"] and p["noises"] == [2.0] and p["centralised"] is False
     assert p["trace"]["scenario"] == "s3" and p["trace"]["noise"] == 2.0  # the cell traces itself
-    p = liu_dgpt.validate(_compose(base, "tracker=gp", "gp_input=temporal", "scenario=s1", "noise=4.0"))
+    p = _plan(_compose(base, "tracker=gp", "gp_input=temporal", "scenario=s1", "noise=4.0"))
     assert p["aggregations"] == [] and p["centralised"] is True and p["gp_input"] == "temporal"
     assert p["scenarios"] == ["s1"] and p["noises"] == [4.0]
-    p = liu_dgpt.validate(_compose(base, "aggregation=grbcm"))  # no tracker: + standard GP
+    p = _plan(_compose(base, "aggregation=grbcm"))  # no tracker: + standard GP
     assert p["aggregations"] == ["grbcm"] and p["centralised"] is True
 
 
 def test_hydra_defaults_run_the_full_grid():
-    p = liu_dgpt.validate(_compose("experiment=liu_table1"))  # scenario = the Yu default
+    p = _plan(_compose("experiment=liu_table1"))  # scenario = the Yu default
     assert p["scenarios"] == ["s1", "s2", "s3"] and p["noises"] == [1.0, 2.0, 4.0]
     assert p["aggregations"] == ["poe", "gpoe", "bcm", "rbcm", "grbcm"] and p["centralised"]
     assert p["gp_input"] == "temporal"
-    assert liu_dgpt.validate(_compose("experiment=liu_table2"))["gp_input"] == "spatiotemporal"
+    assert _plan(_compose("experiment=liu_table2"))["gp_input"] == "spatiotemporal"
+    assert _plan(_compose("experiment=liu_table1", "gp_input=spatiotemporal"))["gp_input"] == "spatiotemporal"
     cfg = _compose("experiment=liu_grid")
     assert cfg.study == "liu_grid" and cfg.task.mc_runs == 100
 
@@ -479,16 +482,15 @@ def test_hydra_unknown_values_give_clear_errors():
         with pytest.raises(MissingConfigException, match=opt):  # Hydra lists the options
             _compose("experiment=liu_table1", ov)
     with pytest.raises(ConfigError, match="noise"):
-        liu_dgpt.validate(_compose("experiment=liu_table1", "noise=-1"))
+        validate_task(_compose("experiment=liu_table1", "noise=-1"))
     with pytest.raises(ConfigError, match="noise"):
-        liu_dgpt.validate(_compose("experiment=liu_table1", "noise=abc"))
+        validate_task(_compose("experiment=liu_table1", "noise=abc"))
     with pytest.raises(ConfigError, match="tracker=gp"):
-        liu_dgpt.validate(_compose("experiment=liu_table1", "tracker=gp", "aggregation=rbcm"))
+        validate_task(_compose("experiment=liu_table1", "tracker=gp", "aggregation=rbcm"))
 
 
 def test_tracker_gp_alone_end_to_end():
-    cfg = _cfg(scenarios=["s2"], noises=[2.0])
-    cfg.tracker = {"name": "gp"}
+    cfg = _cfg("tracker=gp", scenarios=["s2"], noises=[2.0])
     df = liu_dgpt.run(cfg)
     assert set(df["model"]) == {"standard_gp"} and set(df["scenario"]) == {"s2"}
     cfg2 = _cfg(scenarios=["s2"], noises=[2.0])  # the same episodes inside the full run
@@ -601,13 +603,10 @@ def test_keyed_uniform_is_batch_free_and_uniform():
 
 
 def _episodes(n_runs=3, steps=30, scenarios=("s1", "s3"), noises=(2.0,), opt="adam", **hyper):
-    base = OmegaConf.load("conf/task/liu_dgpt.yaml")
-    base.mc_runs, base.num_steps = n_runs, steps
-    base.scenarios, base.noises = list(scenarios), list(noises)
-    base.hyper.optimizer = opt
-    for k, v in hyper.items():
-        base.hyper[k] = v
-    p = liu_dgpt.validate(OmegaConf.create({"seed": 1, "task": base}))
+    cfg = _compose("task=liu_dgpt", "seed=1", f"task.mc_runs={n_runs}", f"task.num_steps={steps}",
+                   f"task.scenarios=[{','.join(scenarios)}]", f"task.noises=[{','.join(map(str, noises))}]",
+                   f"task.hyper.optimizer={opt}", *(f"task.hyper.{k}={v}" for k, v in hyper.items()))
+    p = _plan(cfg)
     return p, liu_dgpt.episodes(p, 1)
 
 

@@ -407,8 +407,16 @@ def test_bad_sample_counts_and_noise():
 
 
 # ---------------------------------------------------------------------------- study end-to-end
-def _cfg(seed=0, ablations=None, **over):
-    task = OmegaConf.load("conf/task/jiang_fg.yaml")
+def _cfg(seed=0, ablations=None, check=True, **over):
+    """``experiment=jiang_fg`` composed by Hydra, made small, with ``over`` (dotted keys of ``task``) set and
+    then checked like ``dslearn-run`` does (root keys, the task schema and its cross-field rules)."""
+    from hydra import compose, initialize_config_dir
+
+    from dslearn.config_schema import CONF_DIR, validate_config
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = compose("config", overrides=["experiment=jiang_fg", f"seed={seed}", "progress=false"])
+    task = cfg.task
     task.mc_runs = 3
     task.scenario.num_timings = 6
     task.num_samples = 10
@@ -418,8 +426,10 @@ def _cfg(seed=0, ablations=None, **over):
     if ablations is not None:
         task.ablations = ablations           # replace (not merge) the ablation list
     for k, v in over.items():
-        OmegaConf.update(task, k, v)
-    return OmegaConf.create({"seed": seed, "device": "cpu", "dtype": "float64", "progress": False, "task": task})
+        OmegaConf.update(task, k, v, force_add=k.startswith("ablations."))
+    if check:
+        validate_config(cfg)
+    return cfg
 
 
 def test_study_run_and_report(tmp_path):
@@ -444,7 +454,9 @@ def test_study_run_and_report(tmp_path):
                                "ablations.warm_start_converged.max_iter": 20}))
     np.testing.assert_array_equal(df["value"].values[:-1], df2["value"].values[:-1])  # last row: runtime
     df["task"] = "jiang_fg"
-    text = jiang_fg.report(df, None, tmp_path)
+    from dslearn.reports.jiang_fg import report
+
+    text = report(df, None, tmp_path)
     assert "Fig. 2" in text and "Fig. 5" in text
     for name in ("fig2", "fig3", "fig4", "fig5"):
         assert (tmp_path / f"jiang_fg_{name}.png").exists() and (tmp_path / f"jiang_fg_{name}.csv").exists()
@@ -458,17 +470,13 @@ def test_study_run_and_report(tmp_path):
                                          ("tracker.gate", -1.0), ("ablations.bad.schedule", "bogus"),
                                          ("ablations.bad.damping", -0.5)])
 def test_study_rejects_bad_config(field, value):
-    from dslearn.studies import jiang_fg
-
-    with pytest.raises(ConfigError, match=field.split(".")[-1]):
-        jiang_fg.run(_cfg(**{field: value}))
+    with pytest.raises(ConfigError, match=f"task.{field}".replace(".", r"\.")):
+        _cfg(**{field: value})
 
 
 def test_study_rejects_negative_seed():
-    from dslearn.studies import jiang_fg
-
     with pytest.raises(ConfigError, match="seed"):
-        jiang_fg.run(_cfg(seed=-1))
+        _cfg(seed=-1)
 
 
 def test_small_cholesky_matches_torch():

@@ -51,8 +51,8 @@ def _linear_run(fusion_name, weights_fn, iterations, omega):
     ep = scen.sample(3, net, torch.Generator().manual_seed(5))
     lin, obs = ConstantVelocity(2, 0.1), LinearPositionObservation(0.2)
     fusion = make_fusion(fusion_name, weights_fn(net.adjacency), iterations, omega)
-    init = initial_belief(ep, net, 0.25, fusion, scen.area)  # the same rule for every fusion
-    return track(ep, net, lin, obs, fusion, CTX, init)
+    init = initial_belief(ep.measurements, net, 0.25, fusion, scen.area)  # the same rule for every fusion
+    return track(ep.measurements, net, lin, obs, fusion, CTX, init)
 
 
 def test_hybrid_metropolis_many_iterations_equals_centralized():
@@ -170,7 +170,8 @@ def test_ce_averages_the_local_estimates_and_keeps_local_information():
 
 
 def test_tracking_metrics_by_hand():
-    from dslearn.filters.distributed import TrackResult, tracking_metrics
+    from dslearn.filters.distributed import TrackResult
+    from dslearn.metrics import tracking_metrics
 
     # one node, one episode, K = 2 steps, two agents; errors chosen by hand
     truth = torch.zeros(1, 3, 8, dtype=D)
@@ -189,7 +190,7 @@ def test_tracking_metrics_by_hand():
 
 
 def test_prediction_error_by_hand():
-    from dslearn.filters.distributed import prediction_error
+    from dslearn.metrics import prediction_error
 
     lin = ConstantVelocity(1, 0.1)
     ctx = StepContext(dt=0.5)

@@ -85,7 +85,7 @@ def test_one_rule_for_every_fusion():
     w = consensus_weights(net.adjacency, "uniform")
     dt, sig2 = scen.dt, net.meas_std**2
     seen = ep.visible[:, :, 0] & ep.visible[:, :, 1]  # (S, B, A)
-    m, o = initial_belief(ep, net, dt, make_fusion("individual", w), scen.area)
+    m, o = initial_belief(ep.measurements, net, dt, make_fusion("individual", w), scen.area)
     pm, po = diffuse_prior(2, scen.area, 1000.0, 1000.0, (), D, "cpu")
     z0, z1 = ep.meas[:, :, 0], ep.meas[:, :, 1]
     for i in range(net.num_nodes):
@@ -103,8 +103,8 @@ def test_one_rule_for_every_fusion():
                     assert torch.allclose(o[i, b, blk, blk], po[blk, blk])
                     assert torch.allclose(m[i, b, blk], pm[blk])
     # centralised: the prior plus the sum over sensors of their pseudo-measurements
-    mc, oc = initial_belief(ep, net, dt, make_fusion("centralized", w), scen.area)
-    dq, do = first_observations(ep, net, dt)
+    mc, oc = initial_belief(ep.measurements, net, dt, make_fusion("centralized", w), scen.area)
+    dq, do = first_observations(ep.measurements, net, dt)
     o_exp = po + do.sum(0)
     assert torch.allclose(oc, o_exp.expand_as(oc))
     q_exp = (po @ pm) + dq.sum(0)

@@ -7,17 +7,16 @@ import math
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from dslearn.errors import ConfigError
 from dslearn.fusion.statistics import (
     average_consensus,
     check_eq22,
     combination_matrices,
-    max_degree_paper,
     throughput_bytes_per_step,
     weight_matrix,
 )
+from dslearn.fusion.weights import consensus_weights, half_max_degree, max_degree
 from dslearn.sim.terrain import cv_model
 from dslearn.filters.rbpf import init_state, online_estep, posterior_mean, rbpf_step
 from dslearn.models.jmnls import m_step, make_params
@@ -246,7 +245,7 @@ def test_rbpf_approaches_kalman_filter_single_mode():
 
 def test_consensus_converges_to_centralised_average():
     adj = network_adjacency(4, FINGER_FOUR)
-    a = weight_matrix(adj, "max_degree")
+    a = weight_matrix(adj, "half_max_degree")
     g = torch.Generator().manual_seed(2)
     zeta = torch.randn(3, 4, 10, generator=g)  # (batch, nodes, statistics)
     avg = zeta.mean(-2, keepdim=True).expand_as(zeta)
@@ -264,9 +263,18 @@ def test_consensus_converges_to_centralised_average():
 
 def test_weight_matrices_against_eq22():
     adj = network_adjacency(4, FINGER_FOUR)
-    torch.testing.assert_close(max_degree_paper(adj), EQ26)  # Eq. (26) reproduced
-    for rule in ("max_degree", "max_degree_core", "metropolis"):
+    torch.testing.assert_close(half_max_degree(adj), EQ26, rtol=0, atol=1e-15)  # Eq. (26) reproduced
+    assert torch.equal(weight_matrix(adj, "half_max_degree"), half_max_degree(adj))
+    assert torch.equal(consensus_weights(adj, "half_max_degree"), half_max_degree(adj))  # registered by name
+    # max_degree_core is 1/(1 + d_max) = dslearn.fusion.weights.max_degree: on the finger four (d_max = 2) 1/3
+    assert torch.equal(weight_matrix(adj, "max_degree_core"), max_degree(adj))
+    torch.testing.assert_close(max_degree(adj)[0, 1], torch.tensor(1 / 3, dtype=torch.float64), rtol=0, atol=1e-15)
+    torch.testing.assert_close(half_max_degree(adj)[0, 1], torch.tensor(0.25, dtype=torch.float64), rtol=0, atol=1e-15)
+    for rule in ("half_max_degree", "max_degree_core", "metropolis"):
         check_eq22(weight_matrix(adj, rule), adj)
+    # the former, ambiguous value is refused with a message naming both replacements
+    with pytest.raises(ConfigError, match="task.consensus.weights='max_degree' is ambiguous.*half_max_degree.*max_degree_core"):
+        weight_matrix(adj, "max_degree")
     check_eq22(weight_matrix(adj, "matrix", EQ26.tolist()), adj)
     deg = adj.sum(-1).double()
     row_only = (adj.double() + torch.eye(4)) / (deg + 1)[:, None]  # row-stochastic, not column-stochastic
@@ -336,13 +344,24 @@ def test_weight_degeneracy_log_domain_no_nan():
 
 
 def _tiny_cfg(**over):
-    task = OmegaConf.load("conf/task/braga_tbn.yaml")
-    cfg = OmegaConf.create({"seed": 3, "device": "cpu", "dtype": "float64", "progress": False, "task": task})
+    """``experiment=braga_tbn`` with small sizes, composed by Hydra and checked (schema + cross-field rules)."""
     small = {"task.mc_runs": 2, "task.mc_batch": 2, "task.steps": 50, "task.num_particles": 30,
              "task.em.burn_in": 20, "task.steady_state_s": 1.0, "task.terrain.size_m": 12000.0,
              "task.terrain.resolution_m": 50.0, "task.record_every": 20, "task.zoom_s": 0.5}
     small.update(over)
-    return OmegaConf.merge(cfg, OmegaConf.from_dotlist([f"{k}={v}" for k, v in small.items()]))
+    return _compose(["seed=3", *(f"{k}={v}" for k, v in small.items())])
+
+
+def _compose(overrides, check=True):
+    from hydra import compose, initialize_config_dir
+
+    from dslearn.config_schema import CONF_DIR, validate_config
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = compose("config", overrides=["experiment=braga_tbn", "progress=false", *overrides])
+    if check:
+        validate_config(cfg)  # root keys and the task schema (dslearn.schemas.braga_tbn)
+    return cfg
 
 
 def test_end_to_end_tiny_run(tmp_path):
@@ -371,7 +390,9 @@ def test_end_to_end_tiny_run(tmp_path):
     # burn-in: parameters untouched before step 20 (t = 1 s)
     early = series[(series.metric == "mu_1") & (series.time_s < 1.0)]
     assert (early.value == -5.0).all()
-    text = braga_tbn.report(df, None, tmp_path)
+    from dslearn.reports.braga_tbn import report
+
+    text = report(df, None, tmp_path)
     assert "centralised" in text and (tmp_path / "braga_tbn_table2.csv").exists()
     assert (tmp_path / "braga_tbn_fig4_parameters.png").exists()
 
@@ -419,12 +440,13 @@ def test_trace_runs_match_study_and_diagnostics():
     """trace_runs on a subset of runs (in another order) reproduces the study's per-run results and records
     consistent diagnostics (ESS in [1, N], position spread >= 0, h_misfit = h(estimate) - h(truth))."""
     from dslearn.studies import braga_tbn
+    from dslearn.tools.tbn_trace import trace_runs
 
     over = {"task.mc_runs": 3, "task.mc_batch": 3, "task.steps": 30, "task.num_particles": 20, "task.em.burn_in": 10,
             "task.steady_state_s": 0.5, "task.workers": 1, "task.strategies": "[noncooperative,consensus_1]"}
     cfg = _tiny_cfg(**over)
     study = _by_key(braga_tbn.run(cfg))
-    scn, res = braga_tbn.trace_runs(cfg, [2, 0])
+    scn, res = trace_runs(cfg, [2, 0])
     n_ss = 10  # 0.5 s at 50 ms
     for ri, ep in enumerate([2, 0]):
         for ci, sname in enumerate(["noncooperative", "consensus_1"]):
@@ -438,13 +460,13 @@ def test_trace_runs_match_study_and_diagnostics():
     assert dg["resampled"].any() and res.counters["resample_events"].sum() == dg["resampled"].sum()
     # node subsets (diagnosis) are for the non-cooperative strategy only
     with pytest.raises(ConfigError, match="noncooperative"):
-        braga_tbn.trace_runs(cfg, [0], nodes=[0])
+        trace_runs(cfg, [0], nodes=[0])
 
 
 def test_terrain_gradient_planar_closed_form():
     """On a planar map z = 500 + 0.3 X - 0.4 Y the bilinear lookup is exact, so |grad h| = 0.5 everywhere."""
     from dslearn.sim.terrain import Scenario, TerrainMap
-    from dslearn.studies.braga_tbn import terrain_gradient
+    from dslearn.sim.terrain import terrain_gradient
 
     res = 25.0
     yy, xx = torch.meshgrid(torch.arange(81.0) * res, torch.arange(81.0) * res, indexing="ij")
@@ -491,7 +513,7 @@ def test_run_reproducible_and_bad_config():
     keep = a.metric != "wall_time_s"
     assert a[keep].value.tolist() == b[keep].value.tolist()
     for over, msg in (({"task.modes.pi_true": "[[0.9,0.2],[0.4,0.6]]"}, "sum to 1"),
-                      ({"task.modes.sigma_init": "[5.0,-1.0]"}, "sigma must be > 0"),
+                      ({"task.modes.sigma_init": "[5.0,-1.0]"}, r"task.modes.sigma_init\[1\]=-1.0 must be > 0"),
                       ({"task.modes.mu_init": "[-5.0,25.0,3.0]"}, "K mismatch"),
                       ({"task.strategies": "[consensus_x]"}, "consensus_<q>"),
                       ({"task.consensus.weights": "matrix", "task.consensus.matrix": "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"}, "22c"),
@@ -500,6 +522,12 @@ def test_run_reproducible_and_bad_config():
                       ({"task.workers": 0}, "workers"),
                       ({"task.filter_streams": "shared"}, "filter_streams"),
                       ({"task.resampling.regularise": -1.0}, "regularise"),
-                      ({"task.lost_track_m": 0.0}, "lost_track_m")):
+                      ({"task.lost_track_m": 0.0}, "lost_track_m"),
+                      ({"task.consensus.weights": "max_degree"}, "ambiguous"),
+                      ({"task.steady_state_s": 100.0}, "steady_state_s"),
+                      ({"task.terrain.resolution_m": 5000.0}, "resolution_m"),
+                      ({"task.network.edges": "[[0,1],[2,3]]"}, "do not connect"),
+                      ({"task.em.eta_exponent": 0.5}, "eta_exponent"),
+                      ({"task.strategies": "[centralised,centralised]"}, "duplicates")):
         with pytest.raises(ConfigError, match=msg):
-            braga_tbn.run(_tiny_cfg(**over))
+            _tiny_cfg(**over)

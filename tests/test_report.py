@@ -114,7 +114,7 @@ def test_report_writes_figure_and_index(tmp_path):
 
 
 def test_yu_tables_label_the_average(tmp_path):
-    from dslearn.plotting.yu import table_tracking, yu_report
+    from dslearn.reports.yu import table_tracking, yu_report
 
     s = summarize(_yu_like())
     tab = table_tracking(s)
@@ -161,7 +161,7 @@ def test_paper_shaped_cells_by_hand():
     """One cell of Table I and one of Table II against hand computation: the Average row's mean is the mean of
     the sensors' means, its ± the mean of the sensors' sample standard deviations (ddof 1), not the spread of
     the sensor-averaged error (kept as std_of_sensor_avg); communication nodes never enter it."""
-    from dslearn.plotting.yu import table_prediction, table_tracking
+    from dslearn.reports.yu import table_prediction, table_tracking
 
     s = summarize(_two_sensor_results())
     tab = table_tracking(s).set_index(["fusion", "node"])

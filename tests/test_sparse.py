@@ -148,6 +148,7 @@ def _tiny_cfg(model_overrides):
     root = Path(__file__).resolve().parents[1] / "conf"
     cfg = OmegaConf.create({
         "study": "t", "seed": 0, "device": "cpu", "dtype": "float64", "progress": False, "threads": 1,
+        "task": {"entry": "dslearn.studies.yu:run", "name": "yu"},
         "scenario": OmegaConf.load(root / "scenario/yu_two_agents.yaml"),
         "network": OmegaConf.load(root / "network/yu.yaml"),
         "observation": OmegaConf.load(root / "observation/linear.yaml"),

@@ -55,7 +55,7 @@ def test_runs_are_reproducible(make_cfg):
 @pytest.mark.parametrize(
     "override,field",
     [
-        ("model.kind=mlp", "model.kind"),
+        ("+model.kind=mlp", "model.kind"),
         ("consensus.name=gossip", "consensus.name"),
         ("model.noise_std=-0.1", "model.noise_std"),
         ("network.sensing_range=0", "network.sensing_range"),
@@ -142,15 +142,15 @@ def test_learning_gate_skips_uninformed_pairs(make_cfg):
     import torch
 
     ep = scenario.sample(1, network, torch.Generator().manual_seed(0))
-    init = initial_belief(ep, network, 0.25, fusion, scenario.area)
-    track(ep, network, model, obs, fusion, scenario.ctx(), init, learn=True, learn_gate_std=0.5)
+    init = initial_belief(ep.measurements, network, 0.25, fusion, scenario.area)
+    track(ep.measurements, network, model, obs, fusion, scenario.ctx(), init, learn=True, learn_gate_std=0.5)
     mask = model.gp.mask[:, : model.gp.n]
     assert model.gp.n == scenario.steps
     # communication-only nodes never measure, so under individual fusion they never learn
     assert not mask[~network.is_sensor].any()
     # without the gate every node appends every step
     _, _, model2, _, _ = study.build()
-    track(ep, network, model2, obs, fusion, scenario.ctx(), init, learn=True, learn_gate_std=None)
+    track(ep.measurements, network, model2, obs, fusion, scenario.ctx(), init, learn=True, learn_gate_std=None)
     assert model2.gp.mask[:, : model2.gp.n].all()
 
 

@@ -218,7 +218,7 @@ def test_overrides_that_duplicate_a_result_column_are_not_separate_keys():
     import pandas as pd
 
     from dslearn.report import summarize
-    from dslearn.plotting.yu import table_prediction
+    from dslearn.reports.yu import table_prediction
 
     rows = []
     for om, val in (("one", 1.0), ("nodes", 3.0)):

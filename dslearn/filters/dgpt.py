@@ -494,3 +494,49 @@ def track(meas: Tensor, avail: Tensor, window: Tensor, *, gp_input: str = "tempo
     methods = aggs + (["standard_gp"] if centralised else [])
     return TrackResult(upd_mean, upd_var, pred_mean, pred_var, upd_bound, pred_bound, n_exp, methods,
                        learning=learning, n_jitter=jc[0], gap_unconverged=gap_unconv, **rec)
+
+
+def per_method(res: TrackResult, field: str) -> Tensor:
+    """(B, methods, C, T) view of a per-pipeline record: rule a -> its pipeline, standard GP -> c."""
+    e, c = getattr(res, f"{field}_e"), getattr(res, f"{field}_c")
+    cols = []
+    for a, m in enumerate(res.methods):
+        if m == "standard_gp":
+            cols.append(c[:, 0])
+        else:
+            cols.append(e[:, 0 if e.shape[1] == 1 else a])
+    return torch.stack(cols, 1)
+
+
+def hyper_summary(res: TrackResult, tol: float | None = None) -> dict:
+    """Per-episode summaries ``(B, methods)`` of the hyperparameter learning (steps with data, both
+    coordinates); ``tol``: the Newton tolerance (unconverged fraction), None for Adam/SGD."""
+    if res.learning is None or res.hyper_e is None and res.hyper_c is None:
+        return {}
+    lw = res.learning[:, None, None, :].to(res.upd_mean.dtype)  # (B, 1, 1, T)
+    cnt = (lw.sum(-1) * 2).clamp_min(1)[..., 0]  # (B, 1)
+
+    def mean(x):
+        x = torch.nan_to_num(x.to(lw.dtype), nan=0.0)
+        return (x * lw).sum((-1, -2)) / cnt
+
+    out = {"hyper_iters": mean(per_method(res, "iters")),
+           "hyper_noise_var": mean(per_method(res, "hyper")[..., -1]),
+           "hyper_outputscale": mean(per_method(res, "hyper")[..., 0])}
+    grad = per_method(res, "grad")
+    if bool(torch.isfinite(grad).any()):
+        on = lw.expand_as(grad) > 0
+        out["hyper_grad_max"] = torch.where(on, grad, torch.zeros_like(grad)).amax((-1, -2))
+        if tol is not None:
+            out["hyper_unconverged_frac"] = mean((grad > tol).to(lw.dtype))
+    gap = per_method(res, "gap")
+    if bool(torch.isfinite(gap).any()):
+        on = (lw.expand_as(gap) > 0) & torch.isfinite(gap)
+        g = torch.where(on, gap, torch.full_like(gap, float("nan"))).flatten(-2)
+        out["ml_gap_mean"] = mean(gap)
+        out["ml_gap_median"] = torch.nan_to_num(g.nanmedian(-1).values, nan=0.0)
+        out["ml_gap_max"] = torch.where(on, gap, torch.zeros_like(gap)).amax((-1, -2))
+        out["ml_gap_frac_gt1"] = mean((gap > 1.0).to(lw.dtype))
+        out["noise_var_mle"] = mean(per_method(res, "noise_mle"))
+        out["ml_gap_unsolved_frac"] = mean(1.0 - per_method(res, "gap_solved"))
+    return out

@@ -13,8 +13,14 @@ from dslearn.filters.information import novel_information, predict
 from dslearn.filters.smoother import transition_error_moments
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.sim.network import SensorNetwork
-from dslearn.sim.scenario import Episodes
+from dslearn.sim.scenario import Measurements
 from dslearn.types import AGENT_DIM, StepContext, agents, safe_cholesky, symmetrize
+
+
+def _measurements_only(ep) -> None:
+    """The filter sees measurements (:class:`~dslearn.sim.scenario.Measurements`), never the truth."""
+    if not isinstance(ep, Measurements):
+        raise TypeError(f"the filter takes Measurements (episodes.measurements), not {type(ep).__name__}")
 
 
 @dataclass
@@ -55,7 +61,7 @@ def diffuse_prior(
     return mean.expand(*shape, -1).clone(), info.expand(*shape, -1, -1).clone()
 
 
-def first_observations(ep: Episodes, network: SensorNetwork, dt: float) -> tuple[Tensor, Tensor]:
+def first_observations(ep: Measurements, network: SensorNetwork, dt: float) -> tuple[Tensor, Tensor]:
     r"""Each node's pseudo-measurement of the initial state from its first two observations
     (Yu et al. V-C), in information form.
 
@@ -76,7 +82,7 @@ def first_observations(ep: Episodes, network: SensorNetwork, dt: float) -> tuple
 
 
 def initial_belief(
-    ep: Episodes,
+    ep: Measurements,
     network: SensorNetwork,
     dt: float,
     fusion: Fusion,
@@ -97,6 +103,7 @@ def initial_belief(
     Returns:
         ``mean (S, B, Dx)``, ``info (S, B, Dx, Dx)``.
     """
+    _measurements_only(ep)
     s, b = network.num_nodes, len(ep)
     a = ep.meas.shape[-2]
     m0, o0 = diffuse_prior(a, area, prior_pos_std, prior_vel_std, (s, b), ep.meas.dtype, ep.meas.device)
@@ -109,7 +116,7 @@ def initial_belief(
 
 
 def track(
-    ep: Episodes,
+    ep: Measurements,
     network: SensorNetwork,
     model: MotionModel,
     obs: ObservationModel,
@@ -119,6 +126,7 @@ def track(
     learn: bool = False,
     learn_gate_std: float | None = None,
     gate_prob: float | None = None,
+    predict_step=None,
 ) -> TrackResult:
     r"""Run the distributed EKF over a batch of episodes (Algorithm 1).
 
@@ -134,17 +142,21 @@ def track(
             has position standard deviation <= this for every target; ``None`` appends always
             (the paper as written). Without the gate, a node that never saw a target appends
             (vague prior -> fused estimate) pairs that corrupt its GP wherever the vague prior sits.
+        predict_step: the filter's prediction step (``filter.predict``: EKF linearisation, the
+            default, or :class:`~dslearn.filters.ukf.UnscentedPredict`), called like
+            :func:`~dslearn.filters.information.predict`.
     """
+    _measurements_only(ep)
     if learn and len(ep) != 1:
         raise ValueError("online learning runs one episode at a time")
     y, o = init
     means, infos = [y], [o]
-    steps = ep.states.shape[1] - 1
+    steps = ep.steps
     adapt = learn and bool(getattr(model, "adapts_noise", False))
     pred_log = []  # (y_pred, P_pred, F, Q) per step, for the process-noise EM step
     informed = torch.ones(network.num_nodes, dtype=torch.bool, device=ep.meas.device)
     for t in range(1, steps + 1):
-        y_pred, q_pred, o_pred, *pq = predict(y, o, model, ctx, full=adapt)
+        y_pred, q_pred, o_pred, *pq = (predict_step or predict)(y, o, model, ctx, full=adapt)
         dq, do = novel_information(y_pred, ep.meas[:, :, t], ep.visible[:, :, t], obs, gate_prob=gate_prob, omega_pred=o_pred)
         q, o = fusion(q_pred, o_pred, dq, do)
         y_new = torch.cholesky_solve(q.unsqueeze(-1), safe_cholesky(o)).squeeze(-1)
@@ -181,36 +193,3 @@ def _informed(info: Tensor, gate_std: float | None) -> Tensor:
     var = torch.cholesky_inverse(safe_cholesky(info[:, 0])).diagonal(dim1=-2, dim2=-1)
     pos_var = var.unflatten(-1, (-1, AGENT_DIM))[..., :2]
     return (pos_var <= gate_std**2).flatten(-2).all(-1)
-
-
-def tracking_metrics(res: TrackResult, truth: Tensor) -> dict[str, Tensor]:
-    r"""Per node and episode: ``track_err`` (the paper's V-C formula, mean position error over
-    t = 1..K and targets), ``track_rmse``, and ``nees`` (average NEES over t = 1..K divided by Dx;
-    1 for a consistent filter).
-
-    Args:
-        res: beliefs ``(S, B, K+1, ...)``; truth: ``(B, K+1, Dx)``.
-    Returns:
-        dict of ``(S, B)`` tensors.
-    """
-    err = res.mean[:, :, 1:] - truth[:, 1:].unsqueeze(0)  # (S, B, K, Dx)
-    perr = agents(err)[..., :2].norm(dim=-1)  # (S, B, K, A)
-    nees = (err.unsqueeze(-2) @ res.info[:, :, 1:] @ err.unsqueeze(-1)).squeeze(-1).squeeze(-1)
-    dx = truth.shape[-1]
-    return {
-        "track_err": perr.mean((-1, -2)),
-        "track_rmse": perr.pow(2).mean((-1, -2)).sqrt(),
-        "nees": nees.mean(-1) / dx,
-    }
-
-
-def prediction_error(model: MotionModel, truth: Tensor, num_nodes: int, ctx: StepContext, per_node: bool) -> Tensor:
-    """Roll the model out from the true state at t = 0 (Table II): mean position error, ``(S, B)``."""
-    x0 = truth[:, 0]
-    steps = truth.shape[1] - 1
-    if per_node:
-        roll = model.rollout(x0.unsqueeze(0).expand(num_nodes, *x0.shape).contiguous(), steps, ctx)
-    else:
-        roll = model.rollout(x0, steps, ctx).unsqueeze(0).expand(num_nodes, -1, -1, -1)
-    err = agents(roll - truth[:, 1:].unsqueeze(0))[..., :2].norm(dim=-1)
-    return err.mean((-1, -2))

@@ -51,6 +51,17 @@ def predict(
     return y_pred, q_pred, omega_pred
 
 
+@dataclasses.dataclass(frozen=True)
+class ExtendedPredict:
+    """The EKF prediction step as a config part (``conf/filter/default.yaml``: ``predict``):
+    :func:`predict`, the model linearised at the mean."""
+
+    name = "ekf"
+
+    def __call__(self, mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext, full: bool = False):
+        return predict(mean, omega, model, ctx, full=full)
+
+
 #: chi-square gating counters (``novel_information(..., gate_prob=...)``): measurements tested / rejected
 GATE_STATS = {"tested": 0, "rejected": 0}
 

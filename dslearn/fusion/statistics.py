@@ -20,25 +20,19 @@ import re
 import torch
 from torch import Tensor
 
-from dslearn.fusion.weights import max_degree as _core_max_degree, metropolis as _core_metropolis
 from dslearn.errors import ConfigError
+from dslearn.fusion.weights import half_max_degree, max_degree, metropolis
 from dslearn.sim.network import adjacency_from_edges, is_connected
 
-WEIGHT_RULES = ("max_degree", "max_degree_core", "metropolis", "matrix")
-
-
-def max_degree_paper(adj: Tensor, dtype=torch.float64) -> Tensor:
-    r"""Maximum-degree weights as used in the paper's Eq. (26): ``a_sr = 1/(2 d_max)`` on edges,
-    ``a_ss = 1 - d_s/(2 d_max)``.
-
-    On the finger-four graph (edges 1-2, 1-3, 3-4, d_max = 2) this reproduces Eq. (26) exactly.
-    (Xiao-Boyd's rule ``1/(1+d_max)`` is available as ``max_degree_core``.)
-    """
-    a = torch.as_tensor(adj).to(torch.bool).clone()
-    a.fill_diagonal_(False)
-    deg = a.sum(-1).to(dtype)
-    w = a.to(dtype) / (2.0 * deg.max())
-    return w + torch.diag(1.0 - w.sum(-1))
+#: ``task.consensus.weights`` of the Braga study -> rule (``matrix``: the explicit ``task.consensus.matrix``).
+#: ``half_max_degree`` is the paper's Eq. (26), 1/(2 d_max); ``max_degree_core`` is 1/(1 + d_max)
+#: (:func:`dslearn.fusion.weights.max_degree`).
+STAT_WEIGHT_RULES = {"half_max_degree": half_max_degree, "max_degree_core": max_degree, "metropolis": metropolis,
+                     "matrix": None}
+#: the retired value: it meant 1/(2 d_max) here but means 1/(1 + d_max) in dslearn.fusion.weights
+RETIRED_RULES = {"max_degree": "it meant 1/(2 d_max) here (the paper's Eq. 26) but 1/(1 + d_max) in "
+                               "dslearn.fusion.weights; use half_max_degree (Eq. 26, the old meaning) or "
+                               "max_degree_core (1/(1 + d_max))"}
 
 
 def check_eq22(a: Tensor, adj: Tensor | None = None, atol: float = 1e-9) -> None:
@@ -70,27 +64,25 @@ def check_eq22(a: Tensor, adj: Tensor | None = None, atol: float = 1e-9) -> None
             raise ConfigError("task.consensus.matrix puts weight on a pair of nodes that are not linked in task.network.edges")
 
 
-def weight_matrix(adj: Tensor, rule: str = "max_degree", matrix=None) -> Tensor:
-    """Consensus weight matrix by rule, checked against Eq. (22).
+def weight_matrix(adj: Tensor, rule: str = "half_max_degree", matrix=None) -> Tensor:
+    """Consensus weight matrix by rule (:data:`STAT_WEIGHT_RULES`), checked against Eq. (22).
 
     Args:
         adj: (S, S) bool adjacency.
-        rule: ``max_degree`` (paper, Eq. 26), ``max_degree_core`` (1/(1+d_max)), ``metropolis`` or
-            ``matrix`` (use ``matrix`` as given).
+        rule: ``half_max_degree`` (paper, Eq. 26: 1/(2 d_max)), ``max_degree_core`` (1/(1+d_max)),
+            ``metropolis`` or ``matrix`` (use ``matrix`` as given).
         matrix: explicit (S, S) weights for ``rule == "matrix"``.
     """
-    if rule not in WEIGHT_RULES:
-        raise ConfigError(f"task.consensus.weights={rule!r} is not allowed; choose one of {list(WEIGHT_RULES)}")
+    if rule in RETIRED_RULES:
+        raise ConfigError(f"task.consensus.weights={rule!r} is ambiguous and no longer accepted: {RETIRED_RULES[rule]}")
+    if rule not in STAT_WEIGHT_RULES:
+        raise ConfigError(f"task.consensus.weights={rule!r} is not allowed; choose one of {list(STAT_WEIGHT_RULES)}")
     if rule == "matrix":
         if matrix is None:
             raise ConfigError("task.consensus.weights=matrix needs task.consensus.matrix (an N_S×N_S list)")
         a = torch.as_tensor(matrix, dtype=torch.float64)
-    elif rule == "max_degree":
-        a = max_degree_paper(adj)
-    elif rule == "max_degree_core":
-        a = _core_max_degree(adj)
     else:
-        a = _core_metropolis(adj)
+        a = STAT_WEIGHT_RULES[rule](adj)
     check_eq22(a, adj)
     return a
 

@@ -57,6 +57,17 @@ class Fusion:
         self.omega_label = str(omega)
         self.wl = torch.linalg.matrix_power(weights, self.iterations)
 
+    @classmethod
+    def for_network(cls, *, adjacency: Tensor, weights: str = "uniform", iterations: int = 4,
+                    omega: float | str = "one") -> "Fusion":
+        """The config factory (``conf/consensus/*.yaml``): the weight matrix of rule ``weights``
+        (:func:`~dslearn.fusion.weights.consensus_weights`) over the graph ``adjacency``."""
+        from dslearn.fusion.weights import consensus_weights
+
+        fusion = cls(consensus_weights(adjacency, weights), iterations, omega)
+        fusion.weights_rule = str(weights)
+        return fusion
+
     def __call__(self, q_pred: Tensor, o_pred: Tensor, dq: Tensor, do: Tensor) -> tuple[Tensor, Tensor]:
         raise NotImplementedError
 

@@ -13,7 +13,7 @@ from torch import Tensor
 
 from dslearn.errors import ConfigError, check_choice
 
-WEIGHT_METHODS = ("uniform", "metropolis", "max_degree")
+WEIGHT_METHODS = ("uniform", "metropolis", "max_degree", "half_max_degree")
 
 
 def _clean(adj: Tensor) -> Tensor:
@@ -61,10 +61,33 @@ def max_degree(adj: Tensor, dtype=torch.float64) -> Tensor:
     return w
 
 
+def half_max_degree(adj: Tensor, dtype=torch.float64) -> Tensor:
+    r"""Half-maximum-degree weights :math:`w_{ij} = 1/(2 d_{max})`, :math:`w_{ii} = 1-d_i/(2 d_{max})`.
+
+    The rule of Braga et al.'s Eq. (26) (on their finger-four graph, d_max = 2, it gives that
+    matrix exactly). Symmetric and doubly stochastic; more self-weight than :func:`max_degree`
+    (``1/(1+d_max)``), so average consensus converges more slowly but never oscillates
+    (every eigenvalue is >= 0). Needs at least one edge.
+    """
+    a = _clean(adj)
+    deg = a.sum(-1).to(dtype)
+    if not float(deg.max()) > 0:
+        raise ConfigError("half_max_degree weights need a graph with at least one edge")
+    w = a.to(dtype) / (2.0 * deg.max())
+    w = w + torch.diag(1.0 - w.sum(-1))
+    return w
+
+
+#: name -> weight rule (the table :func:`consensus_weights` selects from)
+WEIGHT_RULES = {"uniform": uniform, "metropolis": metropolis, "max_degree": max_degree,
+                "half_max_degree": half_max_degree}
+
+
 def consensus_weights(adj: Tensor, method: str = "uniform", dtype=torch.float64) -> Tensor:
-    """Weight matrix by name: ``uniform`` (paper), ``metropolis`` or ``max_degree``."""
+    """Weight matrix by name: ``uniform`` (paper), ``metropolis``, ``max_degree`` (``1/(1+d_max)``)
+    or ``half_max_degree`` (``1/(2 d_max)``, Braga et al. Eq. 26)."""
     check_choice("consensus.weights", method, WEIGHT_METHODS)
-    w = {"uniform": uniform, "metropolis": metropolis, "max_degree": max_degree}[method](adj, dtype)
+    w = WEIGHT_RULES[method](adj, dtype)
     validate_weights(w, adj, doubly=method != "uniform")
     return w
 

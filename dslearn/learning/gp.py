@@ -258,6 +258,39 @@ class OnlineGP(PriorMean, nn.Module):
         self.n = 0
         self._alloc(self.X.shape[1])
 
+    # the data protocol: what code outside the GP may do with its data set ------------------
+    def set_data(self, x: Tensor, y: Tensor, valid: Tensor | None = None, *, residual: bool = False,
+                 capacity: int | None = None) -> None:
+        """Replace every node's data set by ``x (S, n, Din) -> y (S, n, Dy)`` (``residual``: ``y`` is
+        already the target minus the prior mean; ``valid (S, n)`` bool, default all) and factorise
+        once. The buffers hold ``capacity`` rows (default exactly ``n``)."""
+        n = x.shape[1]
+        if x.shape[0] != self.num_nodes or x.shape[-1] != self.input_dim or y.shape[:2] != x.shape[:2] \
+                or y.shape[-1] != self.output_dim:
+            raise ValueError(f"set_data: x {tuple(x.shape)}, y {tuple(y.shape)} do not fit {self.num_nodes} nodes, "
+                             f"input dim {self.input_dim}, output dim {self.output_dim}")
+        self.n = 0
+        self._alloc(max(n, int(capacity or 0), 1))
+        xs = x.to(self.X)
+        self.X[:, :n] = xs
+        self.R[:, :n] = y.to(self.X) if residual else y.to(self.X) - self.prior_mean(xs)
+        self.mask[:, :n] = True if valid is None else valid.to(self.mask.device)
+        self.n = n
+        self.refactorize()
+
+    def data(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The data sets: inputs ``(S, n, Din)``, residual targets ``(S, n, Dy)``, valid ``(S, n)``."""
+        n = self.n
+        return self.X[:, :n], self.R[:, :n], self.mask[:, :n]
+
+    def solve(self, rhs: Tensor) -> Tensor:
+        r""":math:`(K + \sigma^2 I)^{-1} \mathrm{rhs}` for ``rhs (S, n, k)`` through the current factor."""
+        n, cap = self.n, self.L.shape[-1]
+        full = rhs.new_zeros(rhs.shape[0], cap, rhs.shape[-1])
+        full[:, :n] = rhs
+        # the factor is block-diagonal [L_n, 0; 0, I]: solving on the whole buffer is exact
+        return torch.cholesky_solve(full, self.L)[:, :n]
+
     @property
     def alpha(self) -> Tensor:
         r""":math:`(K + \sigma^2 I)^{-1} (Y - m(X))`, ``(S, n, Dy)``, cached until the next append."""

@@ -106,12 +106,9 @@ class AggregatedGPMotion(MotionModel):
         n = gp.n
         if n == 0:
             return torch.zeros_like(xq)
-        X, m = gp.X[:, :n], gp.mask[:, :n]
+        X, _, m = gp.data()
         ks = gp.kernel(X, xq) * m.unsqueeze(-1)  # (S, n, Q)
-        full = ks.new_zeros(ks.shape[0], gp.L.shape[-1], ks.shape[-1])
-        full[:, :n] = ks
-        # the factor is block-diagonal [L_n, 0; 0, I]: solving on the whole buffer is exact
-        c = torch.cholesky_solve(full, gp.L)[:, :n]  # (K + s^2 I)^{-1} k_*
+        c = gp.solve(ks)  # (K + s^2 I)^{-1} k_*
         ck = c * ks
         ls2 = (gp.lengthscale**2).reshape(-1, 1, 1)
         return 2.0 * (ck.sum(1).unsqueeze(-1) * xq - ck.transpose(-1, -2) @ X) / ls2
@@ -172,6 +169,17 @@ class AggregatedGPMotion(MotionModel):
 
 
 # ------------------------------------------------------------------------ config + runner
+def aggregated_for_scenario(*, scenario, num_nodes: int, dtype, device, aggregation: str = "rbcm",
+                            normalise_beta: bool = False, aggregation_jacobian: str = "exact",
+                            **gp_keys) -> AggregatedGPMotion:
+    """The config factory (``conf/model/gp*_rbcm.yaml``): the GP keys build every node's
+    :class:`~dslearn.models.gp.GPMotionModel`; ``aggregation`` fuses their predictions."""
+    if str(gp_keys.get("noise", "latent")) == "adaptive":
+        raise ConfigError("model.noise=adaptive is not available for an aggregated GP; use latent or predictive")
+    base = GPMotionModel(scenario.state_dim, num_nodes, dtype=dtype, device=device, **gp_keys)
+    return AggregatedGPMotion(base, str(aggregation), bool(normalise_beta), str(aggregation_jacobian))
+
+
 def build_aggregated_motion(c, state_dim: int, num_nodes: int, dtype, device) -> AggregatedGPMotion:
     """Model config (``conf/model/gp*_rbcm.yaml``: the GP keys + ``aggregation``,
     ``normalise_beta``, ``aggregation_jacobian``) -> :class:`AggregatedGPMotion`."""

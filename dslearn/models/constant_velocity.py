@@ -20,6 +20,11 @@ class ConstantVelocity(MotionModel):
         noise_std: process noise standard deviation :math:`\sigma` (> 0).
     """
 
+    @classmethod
+    def for_scenario(cls, noise_std: float = 0.1, *, scenario, device=None) -> "ConstantVelocity":
+        """The config factory (``conf/model/lin.yaml``): one agent block per agent of ``scenario``."""
+        return cls(scenario.num_agents, noise_std).to(device)
+
     def __init__(self, num_agents: int, noise_std: float = 0.1):
         super().__init__()
         if num_agents < 1:

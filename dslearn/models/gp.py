@@ -8,6 +8,7 @@ from torch import Tensor
 
 from dslearn.errors import ConfigError, check_choice
 from dslearn.learning.gp import OnlineGP
+from dslearn.learning.sparse import make_online_gp
 from dslearn.models.base import MotionModel
 from dslearn.types import StepContext
 
@@ -48,6 +49,12 @@ class GPMotionModel(MotionModel):
 
     learnable = True
 
+    @classmethod
+    def for_scenario(cls, *, scenario, num_nodes: int, dtype, device, **keys) -> "GPMotionModel":
+        """The config factory (``conf/model/gp*.yaml``): the GP keys of the config (the constructor's
+        keyword arguments), sized by the scenario's state and the network's nodes."""
+        return cls(scenario.state_dim, num_nodes, dtype=dtype, device=device, **keys)
+
     def __init__(
         self,
         state_dim: int,
@@ -84,8 +91,6 @@ class GPMotionModel(MotionModel):
         if variant == "exact" and not variant_options:
             self.gp = OnlineGP(num_nodes, state_dim, state_dim, outputscale, lengthscale, noise_std, mean, capacity, dtype, device)
         else:  # scalable variants (dslearn.learning.sparse): window | sgpr | ssgp
-            from dslearn.learning.sparse import make_online_gp
-
             if fit_every and variant != "exact":
                 raise ConfigError(f"model.fit_every={fit_every}: hyperparameter fitting is only available for model.variant=exact")
             self.gp = make_online_gp(
@@ -199,9 +204,8 @@ class GPMotionModel(MotionModel):
             sparse = {f"sparse.{k}": v for k, v in self.gp.state_tensors().items()}
             torch.save(self._checkpoint(**sparse), path)
             return
-        n = self.gp.n
-        torch.save(self._checkpoint(X=self.gp.X[:, :n].clone(), R=self.gp.R[:, :n].clone(),
-                                    mask=self.gp.mask[:, :n].clone()), path)
+        X, R, mask = self.gp.data()
+        torch.save(self._checkpoint(X=X.clone(), R=R.clone(), mask=mask.clone()), path)
 
     def load(self, path) -> "GPMotionModel":
         """Safe-load what :meth:`save` wrote; checks class, hyperparameter shapes and that the
@@ -217,8 +221,7 @@ class GPMotionModel(MotionModel):
             return self
         blob = self._read_checkpoint(path, extra=("X", "R", "mask"))
         X, R, mask = blob["X"], blob["R"], blob["mask"]
-        s, _, d = self.gp.X.shape
-        o = self.gp.R.shape[-1]
+        s, d, o = self.gp.num_nodes, self.gp.input_dim, self.gp.output_dim
         n = X.shape[1] if X.dim() == 3 else -1
         if (X.dim(), R.dim(), mask.dim()) != (3, 3, 2) or X.shape != (s, n, d) or R.shape != (s, n, o) \
                 or mask.shape != (s, n) or mask.dtype != torch.bool:
@@ -230,13 +233,6 @@ class GPMotionModel(MotionModel):
         if window is not None and n > window:
             raise ConfigError(f"{path}: holds {n} points per node, more than model.window={window}")
         self.load_state_dict(blob["state_dict"])
-        self.gp.reset()
-        while self.gp.X.shape[1] < n:
-            self.gp._grow()
-        dev = self.gp.X.device
-        self.gp.X[:, :n] = X.to(dev, self.gp.X.dtype)
-        self.gp.R[:, :n] = R.to(dev, self.gp.R.dtype)
-        self.gp.mask[:, :n] = mask.to(dev)
-        self.gp.n = n
-        self.gp.refactorize()
+        cap = self.gp.X.shape[1]
+        self.gp.set_data(X, R, mask, residual=True, capacity=cap + 128 * max(0, -(-(n - cap) // 128)))
         return self

@@ -81,6 +81,13 @@ class SocialForce(MotionModel):
         softening: :math:`\epsilon` of :func:`soft_distance` in metres (>= 0).
     """
 
+    @classmethod
+    def for_scenario(cls, noise_std: float = 1e-3, *, scenario, device=None) -> "SocialForce":
+        """The config factory (``conf/model/sfm.yaml``): the true model, with the simulation's
+        parameters (``scenario.sfm``) and the configured process noise."""
+        s = scenario.sfm
+        return cls(s.desired.tolist(), s.tau.tolist(), s.alpha.tolist(), s.beta.tolist(), noise_std, s.softening).to(device)
+
     def __init__(
         self,
         desired_velocities: Sequence[Sequence[float]],

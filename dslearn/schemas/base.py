@@ -69,7 +69,14 @@ def _check_value(name: str, v, rules: dict) -> None:
 
 
 def check_ranges(node: Any, schema: type, prefix: str) -> None:
-    """Apply the rules declared on ``schema``'s fields to ``node`` (a DictConfig / dict)."""
+    """Apply the rules declared on ``schema``'s fields to ``node`` (a DictConfig / dict); a key the
+    schema does not know (added with ``+key=...``, which bypasses Hydra's check) is an error too."""
+    known = [f.name for f in dataclasses.fields(schema)]
+    if isinstance(node, (DictConfig, dict)):
+        unknown = sorted(str(k) for k in node.keys() if k not in known)
+        if unknown:
+            where = ", ".join(f"{prefix}.{k}" if prefix else k for k in unknown)
+            raise ConfigError(f"{where}: unknown key; {prefix or 'the config'} takes {known}")
     for f in dataclasses.fields(schema):
         if isinstance(node, (DictConfig, dict)) and f.name not in node:
             continue

@@ -140,12 +140,16 @@ def generate_s3(runs: int, steps: int, gen: torch.Generator, *, dt=1.0, speed=10
     return _centre(torch.stack(out_p, 1)), torch.stack(out_v, 1)
 
 
-def generate(name: str, runs: int, steps: int, gen: torch.Generator, params: dict | None = None,
-             dt=1.0, dtype=torch.float64, device="cpu"):
-    """Dispatch to S1/S2/S3 with optional keyword overrides ``params``."""
-    params = dict(params or {})
-    fn = {"s1": generate_s1, "s2": generate_s2, "s3": generate_s3}[name]
-    return fn(runs, steps, gen, dt=dt, dtype=dtype, device=device, **params)
+#: the Liu scenarios' trajectory generators: ``conf/scenario/s1..s3.yaml`` and
+#: ``task.scenario_params.s1..s3`` name them as ``_target_`` (``_partial_: true``: runs, steps,
+#: random generator, dt, dtype are supplied at run time)
+GENERATORS = {"s1": generate_s1, "s2": generate_s2, "s3": generate_s3}
+
+
+def generator_target(name: str) -> str:
+    """The ``_target_`` (import path) of scenario ``name``'s generator."""
+    fn = GENERATORS[name]
+    return f"{fn.__module__}.{fn.__name__}"
 
 
 def sensor_field(runs: int, num_sensors: int, area: float, gen: torch.Generator,

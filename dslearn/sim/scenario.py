@@ -16,6 +16,30 @@ from dslearn.sim.network import SensorNetwork
 
 
 @dataclass
+class Measurements:
+    """What the filters and the fusion see of a batch of episodes: the measurements, not the truth.
+
+    Attributes:
+        meas: ``(S, B, K+1, A, 2)`` measurements of every node (zeros where not visible).
+        visible: ``(S, B, K+1, A)`` bool, which node measured which target.
+    """
+
+    meas: Tensor
+    visible: Tensor
+
+    def __len__(self) -> int:
+        return self.meas.shape[1]
+
+    @property
+    def steps(self) -> int:
+        """``K``: the number of steps after t = 0."""
+        return self.meas.shape[2] - 1
+
+    def select(self, idx) -> "Measurements":
+        return Measurements(self.meas[:, idx], self.visible[:, idx])
+
+
+@dataclass
 class Episodes:
     """A batch of episodes.
 
@@ -34,6 +58,14 @@ class Episodes:
 
     def select(self, idx) -> "Episodes":
         return Episodes(self.states[idx], self.meas[:, idx], self.visible[:, idx])
+
+    @property
+    def measurements(self) -> Measurements:
+        """The part of the episodes a filter may see (the truth stays with the metrics)."""
+        return Measurements(self.meas, self.visible)
+
+    def to(self, dtype, device) -> "Episodes":
+        return Episodes(self.states.to(device, dtype), self.meas.to(device, dtype), self.visible.to(device))
 
 
 class SocialForceScenario:
@@ -135,3 +167,12 @@ def episode_streams(seed: int, split: str, start: int, num: int) -> Streams:
     """One random stream per episode ``start .. start + num - 1`` of ``split`` (``"train"``,
     ``"test"``, ...): episode ``i`` of a run is the same whatever the data-set size."""
     return Streams.from_keys([(int(seed), str(split), int(i)) for i in range(start, start + num)], (num,))
+
+
+def sample_split(scenario, network, seed: int, test_episodes: int, train_episodes: int, dtype, device):
+    """The (test, train) episodes of a run, on ``device`` in ``dtype``. One random stream per
+    episode (:func:`episode_streams`), so episode ``i`` of either set is the same whatever the
+    number of training or test episodes."""
+    test = scenario.sample(test_episodes, network, episode_streams(seed, "test", 0, test_episodes))
+    train = scenario.sample(train_episodes, network, episode_streams(seed, "train", 0, train_episodes))
+    return test.to(dtype, device), train.to(dtype, device)

@@ -175,3 +175,14 @@ def simulate(terrain: TerrainMap, truth: NoiseParams, dyn: LinearGaussianDynamic
     eps = randn((runs, s, steps + 1), gen, dtype=dtype, device=device)
     y = terrain(x) + truth.mu[r] + truth.sigma[r] * eps
     return Scenario(x, r, y, terrain)
+
+
+def terrain_gradient(scn: Scenario, step_m: float = 5.0) -> Tensor:
+    """|grad h| of the map at the true positions by central differences. -> (R, S, T) (t = 1..T)."""
+    p = scn.x[..., 1:, :2]
+    ex = torch.tensor([step_m, 0.0], dtype=p.dtype, device=p.device)
+    ey = torch.tensor([0.0, step_m], dtype=p.dtype, device=p.device)
+    h = scn.terrain
+    gx = (h(p + ex) - h(p - ex)) / (2 * step_m)
+    gy = (h(p + ey) - h(p - ey)) / (2 * step_m)
+    return torch.sqrt(gx * gx + gy * gy)

@@ -5,8 +5,8 @@ every fusion strategy and for a parametric (LIN) and a learned (increment GP) mo
 plus gross measurement outliers with and without chi-square gating. Faults act in training and
 in test: the GP is learned online through the faulty network.
 
-Builds the scenario, network, models and fusions with the Yu study's builders
-(:mod:`dslearn.studies.yu`); faults come from :mod:`dslearn.fusion.faults`. All cells of one fault
+The parts come from the config groups (:mod:`dslearn.compose`; the grid's models and fusions are
+options of the ``model`` and ``consensus`` groups); faults come from :mod:`dslearn.fusion.faults`. All cells of one fault
 setting share the same episodes, node-failure schedule, outliers and link-failure draws
 (common random numbers), so differences between fusions and models are not sampling noise.
 
@@ -17,112 +17,22 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import List, Optional
 
 import pandas as pd
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from dslearn.config_schema import check_schema
-from dslearn.fusion.strategies import FUSIONS, make_fusion
-from dslearn.fusion.weights import consensus_weights
-from dslearn.errors import ConfigError, check_choice, check_positive
-from dslearn.fusion.faults import (
-    LIVE_WEIGHTS,
-    NODE_FAIL_MODES,
-    FaultyFusion,
-    add_outliers,
-    apply_node_failures,
-    node_failure_schedule,
-)
-from dslearn.config_schema import CONF_DIR
+from dslearn.compose import build_fusion, build_motion_model, build_network, build_observation, build_predict
+from dslearn.compose import build_scenario, group_options, resolve_device, resolve_dtype
+from dslearn.filters.distributed import initial_belief
 from dslearn.filters.information import GATE_STATS
+from dslearn.fusion.faults import FaultyFusion, add_outliers, apply_node_failures, node_failure_schedule
+from dslearn.learning.online import OnlineLearner
+from dslearn.metrics import tracking_metrics
 from dslearn.sim.scenario import episode_streams
 from dslearn.streams import Streams
-from dslearn.filters.distributed import initial_belief, track, tracking_metrics
-from dslearn.studies.yu import (
-    DTYPES,
-    _resolve_device,
-    _to,
-    build_motion_model,
-    build_network,
-    build_observation,
-    build_scenario,
-)
 
 log = logging.getLogger(__name__)
-CONF = CONF_DIR
-
-
-@dataclass
-class FaultTask:
-    """Schema of ``cfg.task`` (conf/task/yu_faults.yaml)."""
-
-    entry: str = "dslearn.studies.yu_faults:run"
-    name: str = "yu_faults"
-    models: List[str] = field(default_factory=lambda: ["lin", "gp_increment"])
-    fusions: List[str] = field(default_factory=lambda: ["individual", "ce", "cm", "ci", "hybrid", "centralized"])
-    train_episodes: int = 15
-    test_episodes: int = 20
-    link_fail: List[float] = field(default_factory=lambda: [0.0, 0.1, 0.3, 0.5])
-    node_fail: List[float] = field(default_factory=lambda: [0.0, 0.1, 0.2, 0.4])
-    joint: List[List[float]] = field(default_factory=lambda: [[0.3, 0.2]])
-    node_fail_mode: str = "permanent"
-    node_fail_duration: int = 4
-    weights: str = "metropolis"
-    outlier_frac: float = 0.1
-    outlier_std: float = 3.0
-    gate_prob: Optional[float] = 0.99
-    outlier_settings: bool = True
-    divergence_bound: float = 2.0
-
-
-def validate(cfg: DictConfig) -> DictConfig:
-    t = check_schema(cfg.task, FaultTask, "task")
-    for m in t.models:
-        if not (CONF / "model" / f"{m}.yaml").is_file():
-            raise ConfigError(f"task.models contains {m!r}: no conf/model/{m}.yaml")
-    for f in t.fusions:
-        check_choice("task.fusions[]", f, FUSIONS)
-    if t.train_episodes < 0:
-        raise ConfigError(f"task.train_episodes={t.train_episodes} must be >= 0")
-    if t.test_episodes < 1:
-        raise ConfigError(f"task.test_episodes={t.test_episodes} must be >= 1")
-    for name, vals in (("task.link_fail", t.link_fail), ("task.node_fail", t.node_fail)):
-        for v in vals:
-            if not 0.0 <= v <= 1.0:
-                raise ConfigError(f"{name} contains {v}: must be a probability/fraction in [0, 1]")
-    for pair in t.joint:
-        if len(pair) != 2 or not all(0.0 <= v <= 1.0 for v in pair):
-            raise ConfigError(f"task.joint contains {list(pair)!r}: must be [link_fail, node_fail] in [0, 1]")
-    check_choice("task.node_fail_mode", t.node_fail_mode, NODE_FAIL_MODES)
-    check_choice("task.weights", t.weights, LIVE_WEIGHTS)
-    if t.node_fail_duration < 1:
-        raise ConfigError(f"task.node_fail_duration={t.node_fail_duration} must be >= 1")
-    if not 0.0 <= t.outlier_frac <= 1.0:
-        raise ConfigError(f"task.outlier_frac={t.outlier_frac} must be in [0, 1]")
-    check_positive("task.outlier_std", t.outlier_std)
-    if t.gate_prob is not None and not 0.0 < t.gate_prob < 1.0:
-        raise ConfigError(f"task.gate_prob={t.gate_prob} must be in (0, 1) or null")
-    check_positive("task.divergence_bound", t.divergence_bound)
-    return t
-
-
-def load_model_cfg(name: str) -> DictConfig:
-    """``conf/model/<name>.yaml`` with its ``defaults`` (e.g. gp_increment -> gp) merged in."""
-    node = OmegaConf.load(CONF / "model" / f"{name}.yaml")
-    defaults = node.pop("defaults", [])
-    parts = []
-    for d in defaults:
-        if d == "_self_":
-            parts.append(node)
-        else:
-            parts.append(load_model_cfg(str(d)))
-    if not any(d == "_self_" for d in defaults):
-        parts.append(node)
-    return OmegaConf.merge(*parts) if parts else node
 
 
 def settings(t) -> list[dict]:
@@ -151,18 +61,18 @@ def settings(t) -> list[dict]:
 
 
 def run(cfg: DictConfig) -> pd.DataFrame:
-    """Task entry point (see :mod:`dslearn.run`)."""
-    t = validate(cfg)
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    dtype, device = DTYPES[str(cfg.dtype)], _resolve_device(str(cfg.device))
+    """Task entry point (see :mod:`dslearn.run`); ``cfg.task`` is checked by :mod:`dslearn.schemas.yu_faults`."""
+    t = cfg.task
+    dtype, device = resolve_dtype(cfg.dtype), resolve_device(cfg.device)
     seed = int(cfg.seed)
-    scenario = build_scenario(cfg.scenario)
-    network = build_network(cfg.network)
+    scenario = build_scenario(cfg)
+    network = build_network(cfg)
     s = network.num_nodes
     ctx = scenario.ctx()
-    steps = int(round(scenario.horizon / scenario.dt)) if hasattr(scenario, "horizon") else None
-    models = {m: load_model_cfg(m) for m in t.models}
+    models = group_options("model", list(t.models))
+    same = (f"consensus.iterations={int(cfg.consensus.iterations)}", f"consensus.omega={cfg.consensus.omega}",
+            "consensus.weights=uniform")
+    fusions = group_options("consensus", list(t.fusions), same)
     grid = settings(t)
     cells = len(grid) * len(t.models) * len(t.fusions)
     frames, k, t0 = [], 0, time.perf_counter()
@@ -185,11 +95,11 @@ def run(cfg: DictConfig) -> pd.DataFrame:
             ep = apply_node_failures(ep, alive)
             if st["outlier_frac"] > 0:
                 ep, _ = add_outliers(ep, st["outlier_frac"], t.outlier_std, gs)
-            faulty[split] = (_to(ep, dtype, device), alive)
+            faulty[split] = (ep.to(dtype, device), alive)
         for mname in t.models:
             for fname in t.fusions:
                 k += 1
-                df = _cell(cfg, t, st, si, scenario, network, ctx, models[mname], fname, faulty, dtype, device, seed)
+                df = _cell(cfg, st, si, scenario, network, ctx, models[mname], fname, fusions[fname], faulty, dtype, device, seed)
                 frames.append(df)
                 bar.update(1)
                 te = df[(df.metric == "track_err") & (df.node == "alive")]["value"].mean()
@@ -206,29 +116,35 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     return out
 
 
-def _cell(cfg, t, st, si, scenario, network, ctx, mcfg, fname, faulty, dtype, device, seed) -> pd.DataFrame:
-    s = network.num_nodes
-    model = build_motion_model(mcfg, scenario, s, dtype, device)
-    obs = build_observation(cfg.observation, s, dtype, device)
-    base = make_fusion(fname, consensus_weights(network.adjacency, "uniform"), cfg.consensus.iterations, cfg.consensus.omega)
-    fusion = FaultyFusion(base, network.adjacency, st["link_fail"], t.weights, seed=seed * 1_000_003 + 31 * si + 7)
-    gate = st["gate_prob"]
-
-    def init(ep):
-        return initial_belief(ep, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
-
+def _cell(cfg, st, si, scenario, network, ctx, mcfg, fname, fcfg, faulty, dtype, device, seed) -> pd.DataFrame:
+    t = cfg.task
+    model = build_motion_model(mcfg, scenario, network, dtype, device)
+    obs = build_observation(cfg.observation, network, dtype, device)
+    fusion = FaultyFusion(build_fusion(fcfg, network), network.adjacency, st["link_fail"], t.weights,
+                          seed=seed * 1_000_003 + 31 * si + 7)
     train, alive_tr = faulty["train"]
     test, alive_te = faulty["test"]
+    learner = OnlineLearner(
+        network, model, obs, fusion, ctx,
+        init=lambda ep: initial_belief(ep, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std),
+        predict_step=build_predict(cfg), learn_gate_std=cfg.filter.get("learn_gate_std"), gate_prob=st["gate_prob"],
+    )
     g0 = dict(GATE_STATS)
+
+    def evaluate(_seen: int):
+        fusion.begin(alive_te, episodes=list(range(alive_te.shape[1])), split="test")
+        return learner.estimate(test.measurements)
+
+    def before(i: int) -> None:
+        fusion.begin(alive_tr[:, i : i + 1], episodes=[i], split="train")
+
     if model.learnable:
-        for i in range(len(train)):
-            ep = train.select(slice(i, i + 1))
-            fusion.begin(alive_tr[:, i : i + 1], episodes=[i], split="train")
-            track(ep, network, model, obs, fusion, ctx, init(ep), learn=True,
-                  learn_gate_std=cfg.filter.get("learn_gate_std"), gate_prob=gate)
-    fusion.begin(alive_te, episodes=list(range(alive_te.shape[1])), split="test")
-    with torch.no_grad():
-        res = track(test, network, model, obs, fusion, ctx, init(test), learn=False, gate_prob=gate)
+        learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame(), before=before)
+    return _cell_rows(cfg, st, mcfg, fname, fusion, evaluate(len(train)), test, alive_te, g0)
+
+
+def _cell_rows(cfg, st, mcfg, fname, fusion, res, test, alive_te, g0) -> pd.DataFrame:
+    t = cfg.task
     m = tracking_metrics(res, test.states)  # (S, B) each
     finite = torch.isfinite(res.mean).all(-1).all(-1)  # (S, B)
     alive_end = alive_te[:, :, -1].to(finite.device)  # (S, B)
@@ -251,97 +167,10 @@ def _cell(cfg, t, st, si, scenario, network, ctx, mcfg, fname, faulty, dtype, de
     rows.append(pd.DataFrame({"node": "all", "episode": [0], "metric": "gate_reject_frac",
                               "value": [rej / tested if tested else 0.0]}))
     df = pd.concat(rows, ignore_index=True)
-    df.insert(0, "model", str(mcfg.name))
-    df.insert(1, "consensus", fname)
-    df.insert(2, "link_fail", st["link_fail"])
-    df.insert(3, "node_fail", st["node_fail"])
-    df.insert(4, "outlier_frac", st["outlier_frac"])
-    df.insert(5, "gating", "chi2" if st["gate_prob"] is not None else "none")
-    df.insert(6, "axis", st["axis"])
-    df.insert(7, "node_fail_mode", t.node_fail_mode)
-    df.insert(8, "weights", t.weights)
-    df.insert(9, "iterations", int(cfg.consensus.iterations))
-    df.insert(10, "train_episodes", int(t.train_episodes))
+    keys = dict(model=str(mcfg.name), consensus=fname, link_fail=st["link_fail"], node_fail=st["node_fail"],
+                outlier_frac=st["outlier_frac"], gating="chi2" if st["gate_prob"] is not None else "none",
+                axis=st["axis"], node_fail_mode=t.node_fail_mode, weights=t.weights,
+                iterations=int(cfg.consensus.iterations), train_episodes=int(t.train_episodes))
+    for i, (key, v) in enumerate(keys.items()):
+        df.insert(i, key, v)
     return df
-
-
-# ------------------------------------------------------------------------------------------
-# report
-
-
-def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
-    """Curves (PNG) and tables (Markdown + CSV) of tracking error vs faults."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from dslearn.report import markdown
-
-    out_dir = Path(out_dir)
-    r = results[(results.metric == "track_err") & (results.node == "alive")]
-    keys = ["model", "consensus", "axis", "link_fail", "node_fail", "outlier_frac", "gating"]
-    g = r.groupby(keys, sort=False)["value"].agg(mean="mean", std="std", n="count").reset_index()
-    md = ["## Tracking error under network faults (mean ± std over test episodes, nodes alive at the end)"]
-
-    def axis_rows(axis: str) -> pd.DataFrame:
-        # the fault-free setting (p = 0, f = 0) is listed once (link axis) and belongs to both curves
-        base = g[(g.axis == "link") & (g.link_fail == 0) & (g.node_fail == 0)]
-        sub = g[g.axis == axis]
-        return sub if axis == "link" else pd.concat([base, sub], ignore_index=True)
-
-    def table(axis: str, col: str) -> pd.DataFrame:
-        sub = axis_rows(axis).copy()
-        sub["cell"] = sub["mean"].map("{:.3f}".format) + " ± " + sub["std"].map("{:.3f}".format)
-        return sub.pivot_table(index=["model", "consensus"], columns=col, values="cell", aggfunc="first", sort=False)
-
-    # the link axis includes p = 0 (no faults); the node axis too
-    for axis, col, title in (("link", "link_fail", "vs link-failure probability p"),
-                             ("node", "node_fail", "vs fraction of failed nodes")):
-        tab = table(axis, col)
-        if len(tab):
-            tab.to_csv(out_dir / f"yu_faults_{axis}.csv")
-            md.append(f"### {title}\n\n" + markdown(tab.reset_index()))
-    other = g[g.axis.isin(["joint", "outliers", "joint+outliers"])].copy()
-    if len(other):
-        other["cell"] = other["mean"].map("{:.3f}".format) + " ± " + other["std"].map("{:.3f}".format)
-        other["setting"] = (
-            "p=" + other.link_fail.astype(str) + ", f=" + other.node_fail.astype(str)
-            + ", outliers=" + other.outlier_frac.astype(str) + ", gate=" + other.gating
-        )
-        tab = other.pivot_table(index=["model", "consensus"], columns="setting", values="cell", aggfunc="first", sort=False)
-        tab.to_csv(out_dir / "yu_faults_joint.csv")
-        md.append("### joint faults and outliers\n\n" + markdown(tab.reset_index()))
-    nf = results[results.metric == "nonfinite"]["value"].sum()
-    mx = results[(results.metric == "track_err") & (results.node == "alive_max")]
-    worst = mx.groupby(["model", "consensus", "axis", "link_fail", "node_fail", "outlier_frac", "gating"], sort=False)["value"].max()
-    worst = worst.reset_index().rename(columns={"value": "worst alive-node track_err"})
-    worst.to_csv(out_dir / "yu_faults_worst.csv", index=False)
-    hyb = worst[(worst.consensus == "hybrid") & (worst.outlier_frac == 0)]
-    md.append(
-        f"non-finite estimates in the whole grid: {int(nf)}. Worst alive-node tracking error of hybrid consensus "
-        f"over every test episode and fault setting without outliers: {hyb['worst alive-node track_err'].max():.3f} m "
-        f"(per-setting maxima: yu_faults_worst.csv)."
-    )
-    text = "\n\n".join(md)
-    (out_dir / "yu_faults.md").write_text(text + "\n")
-    # figures: one panel per model, one curve per fusion
-    models = list(dict.fromkeys(g.model))
-    for axis, col, xl in (("link", "link_fail", "link-failure probability p"), ("node", "node_fail", "fraction of failed nodes")):
-        sub = axis_rows(axis)
-        if (sub.axis == axis).sum() == 0:
-            continue
-        fig, axs = plt.subplots(1, len(models), figsize=(4.6 * len(models), 3.6), squeeze=False, sharey=True)
-        for ax, m in zip(axs[0], models):
-            for fu, c in sub[sub.model == m].groupby("consensus", sort=False):
-                c = c.sort_values(col)
-                ax.errorbar(c[col], c["mean"], yerr=c["std"], marker="o", capsize=3, label=fu)
-            ax.set_title(m)
-            ax.set_xlabel(xl)
-            ax.grid(alpha=0.3)
-        axs[0][0].set_ylabel("tracking error [m] (alive nodes)")
-        axs[0][-1].legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(out_dir / f"yu_faults_{axis}.png", dpi=120)
-        plt.close(fig)
-    return text

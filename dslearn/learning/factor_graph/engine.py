@@ -53,6 +53,16 @@ class TrackerSettings:
     lambda_tol: float = 1e-8
     converge_tol: float = 1e-3
 
+    @classmethod
+    def from_config(cls, **values) -> "TrackerSettings":
+        """From plain configuration values: lists become tuples, ``prior_var=None`` (no prior node) becomes inf."""
+        for key in ("init_guess", "initial_state"):
+            if key in values:
+                values[key] = tuple(float(v) for v in values[key])
+        if "prior_var" in values and values["prior_var"] is None:
+            values["prior_var"] = float("inf")
+        return cls(**values)
+
 
 @dataclass
 class SimulationOutput:

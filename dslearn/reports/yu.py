@@ -56,7 +56,7 @@ def _nodes(s):
 
 def _label_avg(tab: pd.DataFrame) -> pd.DataFrame:
     """The ``avg`` node shown as "sensor average" (the papers' Average row), after the nodes."""
-    from dslearn.report import AVG_LABEL
+    from dslearn.reports.tables import AVG_LABEL
 
     if "node" in tab.columns:
         tab["node"] = tab["node"].map(lambda n: AVG_LABEL if n == "avg" else n)
@@ -125,7 +125,7 @@ def fig_training(summary: pd.DataFrame, out: Path) -> Path | None:
 
 
 def yu_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
-    from dslearn.report import markdown
+    from dslearn.reports.tables import markdown
 
     out_dir = Path(out_dir)
     parts = []
@@ -145,3 +145,8 @@ def yu_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> st
     if fig is not None:
         parts.append(f"Figure: {fig.name}")
     return "\n\n".join(parts)
+
+
+def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
+    """Tables I-II and Fig. 2 of Yu et al. (``task=yu``), from the result table."""
+    return yu_report(results, summary, out_dir)

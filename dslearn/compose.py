@@ -1,0 +1,160 @@
+r"""The composition root: every swappable part of a study is a config node that Hydra instantiates.
+
+A part's config file names its implementation with ``_target_`` (a class, or a ``for_*``
+factory classmethod that sizes the part from the run). ``_partial_: true`` marks a part whose
+sizes are known only at run time (the number of nodes, the scenario's state, dtype, device,
+the communication graph): :func:`build` instantiates it and then calls it with those of the run's
+objects its signature names, and only those. ``name`` is the part's label (written into the
+result tables): it is passed on only to a target that takes it.
+
+Studies call :func:`build` (or :func:`build_parts` for the usual set) and never decode names.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from dslearn.errors import ConfigError, check_choice
+
+DTYPES = {"float64": torch.float64, "float32": torch.float32}
+#: config keys that label a part rather than configure it
+LABELS = ("name",)
+
+
+def resolve_device(device: str) -> torch.device:
+    """``cpu`` or ``cuda[:i]``; ConfigError when CUDA is asked for and absent."""
+    check_choice("device", str(device).split(":")[0], ("cpu", "cuda"))
+    if str(device).startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError("device=cuda was asked for but no CUDA device is available; use device=cpu")
+    return torch.device(device)
+
+
+def resolve_dtype(dtype: str) -> torch.dtype:
+    check_choice("dtype", str(dtype), tuple(DTYPES))
+    return DTYPES[str(dtype)]
+
+
+def _target_params(target) -> dict[str, inspect.Parameter]:
+    try:
+        return dict(inspect.signature(target).parameters)
+    except (TypeError, ValueError):
+        return {}
+
+
+def build(node: Any, prefix: str, **runtime: Any) -> Any:
+    """Instantiate the config ``node`` (found at ``prefix``, e.g. ``model``); a ``_partial_`` node is
+    then called with the ``runtime`` objects its target names. Unknown keys, or a part whose
+    target cannot be found, raise :class:`ConfigError` naming ``prefix``."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import get_object, instantiate
+
+    if node is None:
+        raise ConfigError(f"{prefix} is missing (null)")
+    spec = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node)
+    target = spec.get("_target_")
+    if not target:
+        raise ConfigError(f"{prefix} has no _target_ (the class or factory that builds it)")
+    try:
+        fn = get_object(target)
+    except Exception as e:  # noqa: BLE001  (hydra raises ImportError / plain Exception)
+        raise ConfigError(f"{prefix}._target_={target!r} cannot be imported: {str(e).splitlines()[0]}") from None
+    params = _target_params(fn)
+    takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    named = {k for k, p in params.items() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+    for k in LABELS:
+        if k in spec and k not in named:
+            spec.pop(k)
+    unknown = sorted(k for k in spec if not k.startswith("_") and k not in named and not takes_any)
+    if unknown:
+        allowed = sorted(k for k in named if k not in runtime and k != "self")
+        raise ConfigError(f"{prefix}: unknown key(s) {unknown} for {target}; allowed: {allowed}")
+    try:
+        obj = instantiate(spec, _convert_="all")
+    except InstantiationException as e:
+        cause = e.__cause__
+        if isinstance(cause, (ConfigError, ValueError)) and not isinstance(cause, TypeError):
+            raise cause
+        raise ConfigError(f"{prefix}: {str(e).splitlines()[0]}") from None
+    if isinstance(obj, functools.partial):
+        obj = obj(**{k: v for k, v in runtime.items() if k in named})
+    return obj
+
+
+@dataclass
+class Parts:
+    """The parts of a learn-while-tracking study, built from the config groups."""
+
+    scenario: Any
+    network: Any
+    model: Any
+    observation: Any
+    fusion: Any
+    predict: Any
+    dtype: torch.dtype
+    device: torch.device
+
+
+def build_scenario(cfg: DictConfig):
+    return build(cfg.scenario, "scenario")
+
+
+def build_network(cfg: DictConfig):
+    return build(cfg.network, "network")
+
+
+def build_motion_model(node: Any, scenario, network, dtype, device):
+    return build(node, "model", scenario=scenario, num_nodes=network.num_nodes, dtype=dtype, device=device)
+
+
+def build_observation(node: Any, network, dtype, device):
+    return build(node, "observation", num_nodes=network.num_nodes, dtype=dtype, device=device)
+
+
+def build_fusion(node: Any, network, prefix: str = "consensus"):
+    return build(node, prefix, adjacency=network.adjacency)
+
+
+def build_predict(cfg: DictConfig):
+    """The filter's prediction step (``filter.predict``: EKF linearisation or unscented)."""
+    node = cfg.filter.get("predict")
+    if node is None:
+        from dslearn.filters.information import ExtendedPredict
+
+        return ExtendedPredict()
+    return build(node, "filter.predict")
+
+
+def build_parts(cfg: DictConfig, model_node: Any = None) -> Parts:
+    """Scenario, network (first: connectivity is checked before anything else is built), motion
+    and observation models, fusion and the filter's prediction step of ``cfg``."""
+    dtype, device = resolve_dtype(cfg.dtype), resolve_device(cfg.device)
+    scenario = build_scenario(cfg)
+    network = build_network(cfg)
+    model = build_motion_model(cfg.model if model_node is None else model_node, scenario, network, dtype, device)
+    obs = build_observation(cfg.observation, network, dtype, device)
+    fusion = build_fusion(cfg.consensus, network)
+    return Parts(scenario, network, model, obs, fusion, build_predict(cfg), dtype, device)
+
+
+def group_options(group: str, names, overrides: tuple[str, ...] = ()) -> dict[str, DictConfig]:
+    """The config nodes of several options of one group (``{name: cfg.<group>}``), composed by Hydra
+    with their defaults lists, as ``<group>=<name>`` would (inside a running app: with its search
+    path). ``overrides`` apply to each (e.g. ``consensus.iterations=4``)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from dslearn.config_schema import CONF_DIR
+
+    def _all() -> dict[str, DictConfig]:
+        return {n: compose("config", overrides=[f"{group}={n}", *overrides])[group] for n in names}
+
+    if GlobalHydra.instance().is_initialized():
+        return _all()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return _all()

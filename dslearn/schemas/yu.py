@@ -1,0 +1,18 @@
+"""Schema of ``task=yu`` (the synthetic study). The task block names only the entry; the study's
+parts are the root groups (scenario, network, model, observation, consensus, data, filter),
+whose schemas and ranges are in :mod:`dslearn.config_schema`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from dslearn.schemas.base import register_task
+
+
+@dataclass
+class YuTask:
+    entry: str = "dslearn.studies.yu:run"
+    name: str = "yu"
+
+
+register_task("yu", YuTask)

@@ -1,0 +1,175 @@
+"""The config schemas of the jiang_fg and braga_tbn tasks (keys / types at composition, ranges and
+cross-field rules before any work), their options, and the Braga diagnostics tool."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from dslearn.config_schema import CONF_DIR, validate_config
+from dslearn.errors import ConfigError
+
+
+def _compose(experiment: str, *overrides: str):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return compose("config", overrides=[f"experiment={experiment}", *overrides])
+
+
+@pytest.mark.parametrize("experiment", ["jiang_fg", "braga_tbn"])
+def test_defaults_compose_and_pass(experiment):
+    cfg = _compose(experiment)
+    validate_config(cfg)  # root keys + the task schema + its cross-field check
+    assert OmegaConf.get_type(cfg.task).__name__ in ("JiangTask", "BragaTask")
+
+
+@pytest.mark.parametrize("experiment,override,fragment", [
+    ("jiang_fg", "task.bogus=1", "bogus"),
+    ("jiang_fg", "task.fg.bogus=1", "bogus"),
+    ("jiang_fg", "task.mc_runs=abc", "mc_runs"),
+    ("jiang_fg", "task.fg.relinearize=maybe", "relinearize"),
+    ("braga_tbn", "task.bogus=1", "bogus"),
+    ("braga_tbn", "task.em.bogus=1", "bogus"),
+    ("braga_tbn", "task.num_particles=abc", "num_particles"),
+    ("braga_tbn", "task.dt=fast", "dt"),
+])
+def test_unknown_key_or_wrong_type_fails_at_composition(experiment, override, fragment):
+    with pytest.raises(Exception, match=fragment) as info:
+        _compose(experiment, override)
+    assert not isinstance(info.value, ConfigError)  # Hydra's own error, before any check of ours runs
+
+
+@pytest.mark.parametrize("override,message", [
+    ("task.mc_runs=0", "task.mc_runs=0 must be >= 1"),
+    ("task.sigma_y=0", "task.sigma_y=0.0 must be > 0.0"),
+    ("task.fg.damping=1.0", "task.fg.damping=1.0 must be >= 0.0 and < 1.0"),
+    ("task.fg.graph=tree", "task.fg.graph='tree' is not allowed; choose one of ['scalar', 'joint']"),
+    ("task.tracker.obs_var=bogus", "task.tracker.obs_var='bogus' is not allowed"),
+    ("task.figures.fig2_iterations=[1,0]", "task.figures.fig2_iterations[1]=0 must be >= 1"),
+    ("task.scenario.initial_state=[1.0]", "task.scenario.initial_state=[1.0] must have 2 entries"),
+    ("task.scenario.coefficients=[[1,2,3]]", "task.scenario.coefficients=[[1, 2, 3]] needs 2 rows"),
+    ("task.scenario.sensors=[[0,0],[1]]", "every sensor needs the same number"),
+    ("task.scenario.sensors=[[0,a]]", "task.scenario.sensors[0]=[0, 'a'] must be a list of finite numbers"),
+    ("task.num_samples=1", "task.num_samples=1 must be >= 2 with task.fg.measurement_var=sample"),
+    ("+task.ablations.x={bogus:1}", "task.ablations.x.bogus: Key 'bogus' not in 'Ablation'"),
+    ("+task.ablations.x={damping:abc}", "task.ablations.x.damping"),
+    ("+task.ablations.x={max_iter:0}", "task.ablations.x.max_iter=0 must be >= 1"),
+    ("+task.ablations.x={init_guess:[1.0]}", "task.ablations.x.init_guess=[1.0] must have 2 entries"),
+    ("+task.ablations.default={damping:0.5}", "task.ablations.default: the name 'default' is the main grid's"),
+])
+def test_jiang_values_name_the_field(override, message):
+    cfg = _compose("jiang_fg", override)
+    with pytest.raises(ConfigError) as info:
+        validate_config(cfg)
+    assert message in str(info.value), str(info.value)
+
+
+def test_jiang_ablation_fields_are_the_tracker_settings():
+    from dslearn.learning.factor_graph.engine import TrackerSettings
+    from dslearn.schemas.jiang_fg import Ablation
+
+    want = {f.name for f in dataclasses.fields(TrackerSettings)} - {"num_samples", "initial_state"} | {"max_iter"}
+    assert {f.name for f in dataclasses.fields(Ablation)} == want
+
+
+def test_jiang_every_option_composes_and_instantiates():
+    """Each choice of the fg / tracker settings composes, passes the checks and builds TrackerSettings; the
+    README's '+task.ablations.<name>={...}' override works and its values reach the settings typed."""
+    from dslearn.learning.factor_graph.crlb import CRLB_FORMS
+    from dslearn.learning.factor_graph.engine import TrackerSettings
+    from dslearn.studies.jiang_fg import _params
+
+    options = [f"task.fg.crlb_form={c}" for c in CRLB_FORMS] + [
+        "task.fg.schedule=sequential", "task.fg.graph=joint", "task.fg.taylor_point=guess",
+        "task.fg.init_guess_mode=prediction", "task.fg.measurement_var=known", "task.fg.relinearize=true",
+        "task.fg.prior_var=4.0", "task.tracker.obs_var=crlb", "task.tracker.gate=10.83"]
+    for ov in options:
+        cfg = _compose("jiang_fg", ov, "+task.ablations.mine={relinearize:true,damping:0,prior_var:null,max_iter:7}")
+        validate_config(cfg)
+        p = _params(cfg.task)
+        s = TrackerSettings.from_config(**p["settings"])
+        key, val = ov.split("=")
+        got = getattr(s, key.split(".")[-1])
+        assert str(got).lower() == val.lower() or got == float(val), (ov, got)
+        mine, its = p["ablations"]["mine"]
+        m = TrackerSettings.from_config(**mine)
+        assert its == 7 and m.relinearize is True and m.prior_var == float("inf")
+        assert isinstance(m.damping, float) and m.damping == 0.0
+        assert set(p["ablations"]) == {"mine", *OmegaConf.load(CONF_DIR / "task" / "jiang_fg.yaml").ablations}
+
+
+def test_braga_weight_options_compose_and_build():
+    from dslearn.fusion.weights import half_max_degree, max_degree, metropolis
+    from dslearn.learning.online_em import tbn_params
+
+    eq26 = [[0.5, 0.25, 0.25, 0.0], [0.25, 0.75, 0.0, 0.0], [0.25, 0.0, 0.5, 0.25], [0.0, 0.0, 0.25, 0.75]]
+    built = {}
+    for rule in ("half_max_degree", "max_degree_core", "metropolis", "matrix"):
+        over = [f"task.consensus.weights={rule}"] + ([f"task.consensus.matrix={eq26}".replace(" ", "")]
+                                                      if rule == "matrix" else [])
+        cfg = _compose("braga_tbn", *over)
+        validate_config(cfg)
+        built[rule] = tbn_params(cfg.task)
+    adj = built["half_max_degree"]["adj"]
+    assert torch.equal(built["half_max_degree"]["weights"], half_max_degree(adj))
+    assert torch.equal(built["max_degree_core"]["weights"], max_degree(adj))
+    assert torch.equal(built["metropolis"]["weights"], metropolis(adj))
+    torch.testing.assert_close(built["matrix"]["weights"], torch.tensor(eq26, dtype=torch.float64), rtol=0, atol=0)
+    torch.testing.assert_close(built["half_max_degree"]["weights"], torch.tensor(eq26, dtype=torch.float64),
+                               rtol=0, atol=1e-15)  # the paper's Eq. (26)
+    cfg = _compose("braga_tbn", "task.consensus.weights=max_degree")
+    with pytest.raises(ConfigError, match="task.consensus.weights='max_degree' is ambiguous"):
+        validate_config(cfg)
+
+
+@pytest.mark.parametrize("override,message", [
+    ("task.mc_batch=0", "task.mc_batch=0 must be >= 1"),
+    ("task.em.init_mode=bogus", "task.em.init_mode='bogus' is not allowed"),
+    ("task.em.burn_in=-1", "task.em.burn_in=-1 must be >= 0"),
+    ("task.backward_kernel.dtype=float16", "task.backward_kernel.dtype='float16' is not allowed"),
+    ("task.kilobyte=999", "task.kilobyte=999 is not allowed; choose one of [1000, 1024]"),
+    ("task.v0=[1.0,2.0,3.0]", "task.v0 has 3 entries; it allows at most 2"),
+    ("task.network.fusion_centre=4", "task.network.fusion_centre=4 must be >= 0 and <= 3"),
+    ("task.modes.mu_init=[-5.0,25.0,3.0]", "K mismatch"),
+    ("task.consensus.weights=matrix", "task.consensus.weights=matrix needs task.consensus.matrix"),
+    ("task.strategies=[]", "task.strategies has 0 entries"),
+])
+def test_braga_values_name_the_field(override, message):
+    cfg = _compose("braga_tbn", override)
+    with pytest.raises(ConfigError) as info:
+        validate_config(cfg)
+    assert message in str(info.value), str(info.value)
+
+
+def test_braga_init_mode_true_from_the_command_line():
+    """``task.em.init_mode=true`` arrives as a bool; it is accepted and means the paper's initialisation."""
+    from dslearn.learning.online_em import tbn_params
+
+    cfg = _compose("braga_tbn", "task.em.init_mode=true")
+    validate_config(cfg)
+    assert tbn_params(cfg.task)["init_mode"] == "true"
+    assert tbn_params(_compose("braga_tbn", "task.em.init_mode=uniform").task)["init_mode"] == "uniform"
+
+
+def test_run_tbn_takes_no_truth():
+    """The filter loop's inputs are the measurements, the map, the initial state/mode and the models."""
+    from dslearn.learning.online_em import run_tbn
+
+    params = list(inspect.signature(run_tbn).parameters)
+    assert params[:3] == ["y", "terrain", "x0"] and "scn" not in params and "truth" not in params
+
+
+def test_tbn_trace_tool_screen_and_episodes(capsys):
+    from dslearn.tools.tbn_trace import _episodes, main
+
+    assert _episodes("0-2,5") == [0, 1, 2, 5]
+    main(["screen", "0-1", "task.steps=20", "task.num_particles=10", "task.em.burn_in=5",
+          "task.steady_state_s=0.5", "task.workers=1", "task.strategies=[noncooperative,consensus_1]",
+          "task.terrain.size_m=12000.0", "task.terrain.resolution_m=50.0"])
+    out = capsys.readouterr().out.strip().splitlines()
+    assert [ln.split(":")[0] for ln in out] == ["noncooperative", "consensus_1"]
+    assert all(ln.split(": ")[1].startswith("2 runs, lost track") for ln in out)
