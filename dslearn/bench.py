@@ -507,7 +507,7 @@ def main(argv=None) -> None:
 
 def write_outputs(df: pd.DataFrame, out: Path) -> str:
     """``bench.csv``, ``bench.md`` (machine lines, table, slopes, protocol ratio) and the GP plot."""
-    from dslearn.report import markdown
+    from dslearn.reports.tables import markdown
 
     out.mkdir(parents=True, exist_ok=True)
     extra = []

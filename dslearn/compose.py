@@ -49,7 +49,8 @@ def _target_params(target) -> dict[str, inspect.Parameter]:
 
 def build(node: Any, prefix: str, **runtime: Any) -> Any:
     """Instantiate the config ``node`` (found at ``prefix``, e.g. ``model``); a ``_partial_`` node is
-    then called with the ``runtime`` objects its target names. Unknown keys, or a part whose
+    then called with the ``runtime`` objects its target names (with none given, the partial is
+    returned for the caller to complete). Unknown keys, or a part whose
     target cannot be found, raise :class:`ConfigError` naming ``prefix``."""
     from hydra.errors import InstantiationException
     from hydra.utils import get_object, instantiate
@@ -81,7 +82,7 @@ def build(node: Any, prefix: str, **runtime: Any) -> Any:
         if isinstance(cause, (ConfigError, ValueError)) and not isinstance(cause, TypeError):
             raise cause
         raise ConfigError(f"{prefix}: {str(e).splitlines()[0]}") from None
-    if isinstance(obj, functools.partial):
+    if isinstance(obj, functools.partial) and runtime:  # without run-time objects: the partial itself
         obj = obj(**{k: v for k, v in runtime.items() if k in named})
     return obj
 
@@ -149,7 +150,8 @@ def group_options(group: str, names, overrides: tuple[str, ...] = ()) -> dict[st
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from dslearn.config_schema import CONF_DIR
+    import dslearn.schemas  # noqa: F401  (the task schemas the configs name)
+    from dslearn.conf_paths import CONF_DIR
 
     def _all() -> dict[str, DictConfig]:
         return {n: compose("config", overrides=[f"{group}={n}", *overrides])[group] for n in names}

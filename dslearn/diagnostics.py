@@ -1,53 +1,66 @@
-r"""One diagnostics object per run: numerical jitter, measurement gating, timings.
+r"""Diagnostics as an object: numerical jitter, measurement gating, timings of one run.
 
-:func:`dslearn.run.execute` opens a :class:`Diagnostics` around the study, hands it to the study's
-entry (``run(cfg, diagnostics=...)`` when the entry takes it) and writes :meth:`Diagnostics.as_dict`
-into ``meta.json`` (key ``diagnostics``) for every study. The counters are read as differences
-over the run of the process-wide counters the numerical kernels keep
-(:data:`dslearn.types.JITTER`, :data:`dslearn.filters.information.GATE_STATS`), so kernels deep in a
-model need no extra argument; a study adds its own timings and counts with :meth:`timed` and
-:meth:`count`.
+A :class:`Diagnostics` is a context (like ``gpytorch.settings``): while it is open, the numerical
+kernels record into it (``safe_cholesky`` the jitter it added, the online GP the diagonals it
+clamped, the filter's chi-square gate what it tested and rejected), through :func:`current`;
+nested contexts all receive the records. :func:`dslearn.run.execute` opens one around every
+study, hands it to the study's entry (``run(cfg, diagnostics=...)`` when the entry takes it) so
+the study adds its own timings and counts, and writes :meth:`Diagnostics.as_dict` into
+``meta.json``. Nothing diffs a module-level counter. Outside any run the records go to
+:data:`SESSION` (a library user's Python session).
 """
 
 from __future__ import annotations
 
 import time
 from contextlib import contextmanager
+from contextvars import ContextVar
 from typing import Any
 
 
-class Diagnostics:
-    """Counters and timings of one run (open it with ``with Diagnostics() as d:``)."""
+class JitterLog:
+    """Counts the times a near-singular matrix needed jitter or a fallback."""
 
     def __init__(self) -> None:
-        self.timings: dict[str, float] = {}
-        self.counts: dict[str, float] = {}
-        self.jitter_events = 0
-        self.jitter_max = 0.0
+        self.count = 0
+        self.max_jitter = 0.0
+
+    def record(self, jitter: float) -> None:
+        self.count += 1
+        self.max_jitter = max(self.max_jitter, float(jitter))
+
+
+class Diagnostics:
+    """Counters and timings of one run (``with Diagnostics() as d: ...``)."""
+
+    def __init__(self) -> None:
+        self.jitter = JitterLog()
         self.gate_tested = 0
         self.gate_rejected = 0
-        self._open = False
+        self.timings: dict[str, float] = {}
+        self.counts: dict[str, float] = {}
+        self._token = None
 
+    # the context ------------------------------------------------------------------------
     def __enter__(self) -> "Diagnostics":
-        from dslearn.filters.information import GATE_STATS
-
-        self._g0 = dict(GATE_STATS)
         self._t0 = time.perf_counter()
-        self._open = True
+        self._token = _ACTIVE.set(_ACTIVE.get() + (self,))
         return self
 
     def __exit__(self, *exc) -> None:
-        from dslearn.filters.information import GATE_STATS
-
-        self.gate_tested += GATE_STATS["tested"] - self._g0["tested"]
-        self.gate_rejected += GATE_STATS["rejected"] - self._g0["rejected"]
+        _ACTIVE.reset(self._token)
+        self._token = None
         self.timings.setdefault("total_s", round(time.perf_counter() - self._t0, 3))
-        self._open = False
 
-    def set_jitter(self, events: int, max_jitter: float) -> None:
-        """Jitter added to near-singular matrices during the run (from the run's warning ledger)."""
-        self.jitter_events, self.jitter_max = int(events), float(max_jitter)
+    # what the kernels record --------------------------------------------------------------
+    def record_jitter(self, jitter: float) -> None:
+        self.jitter.record(jitter)
 
+    def record_gate(self, tested: int, rejected: int) -> None:
+        self.gate_tested += int(tested)
+        self.gate_rejected += int(rejected)
+
+    # what a study records ---------------------------------------------------------------
     @contextmanager
     def timed(self, name: str):
         """Add the wall time of the block to ``timings[name + '_s']``."""
@@ -63,9 +76,34 @@ class Diagnostics:
 
     def as_dict(self) -> dict[str, Any]:
         return {
-            "jitter_events": self.jitter_events,
-            "jitter_max": self.jitter_max,
+            "jitter_events": self.jitter.count,
+            "jitter_max": self.jitter.max_jitter,
             "gating": {"tested": self.gate_tested, "rejected": self.gate_rejected},
             "timings": dict(self.timings),
             "counts": dict(self.counts),
         }
+
+
+#: where records go outside any run (a library user's session)
+SESSION = Diagnostics()
+_ACTIVE: ContextVar[tuple[Diagnostics, ...]] = ContextVar("dslearn_diagnostics", default=())
+
+
+def active() -> tuple[Diagnostics, ...]:
+    """Every open context, outermost first; :data:`SESSION` when none is open."""
+    return _ACTIVE.get() or (SESSION,)
+
+
+def current() -> Diagnostics:
+    """The innermost open context (:data:`SESSION` when none is open)."""
+    return active()[-1]
+
+
+def record_jitter(jitter: float) -> None:
+    for d in active():
+        d.record_jitter(jitter)
+
+
+def record_gate(tested: int, rejected: int) -> None:
+    for d in active():
+        d.record_gate(tested, rejected)

@@ -457,10 +457,7 @@ def report(root: str | Path, out_dir: str | Path | None = None) -> str:
         except ModuleNotFoundError as e:
             if e.name != f"dslearn.reports.{task}":
                 raise
-            try:  # transition: a study whose report has not moved yet
-                mod = importlib.import_module(f"dslearn.studies.{task}")
-            except ImportError:
-                continue
+            continue  # a task without its own tables: the generic ones below
         fn = getattr(mod, "report", None)
         if fn is not None:
             sub = results[results["task"] == task]

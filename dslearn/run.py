@@ -48,7 +48,7 @@ import pandas as pd  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from dslearn import __version__  # noqa: E402
-from dslearn.config_schema import CONF_DIR as _CONF_DIR, CONF_DIRS  # noqa: E402
+from dslearn.schemas.core import CONF_DIR as _CONF_DIR, CONF_DIRS  # noqa: E402
 from dslearn.errors import ConfigError, DataFormatError  # noqa: E402
 from dslearn.io import (
     META_FILE,
@@ -69,8 +69,8 @@ PROG = "dslearn-run"
 
 def resolve_entry(entry: str):
     """A registered study entry (``"pkg.module:function"``, one of
-    :data:`dslearn.config_schema.TASK_ENTRIES`) -> the function."""
-    from dslearn.config_schema import check_entry
+    :data:`dslearn.schemas.core.TASK_ENTRIES`) -> the function."""
+    from dslearn.schemas.core import check_entry
 
     check_entry(entry)
     mod, fn = entry.split(":", 1)
@@ -138,15 +138,16 @@ class WarningLedger:
 
     Numerical-jitter warnings (GPyTorch's ``NumericalWarning`` "added jitter of ..." and the
     online GP's "diagonal clamped") are counted, not printed: with the project's own jitter
-    counter (:data:`dslearn.types.JITTER`) they make ``jitter_events`` / ``jitter_max`` in
+    records (:mod:`dslearn.diagnostics`) they make ``jitter_events`` / ``jitter_max`` in
     ``meta.json`` and one summary line. Every other warning is shown once per distinct message
     after the task (with its count when it repeated)."""
 
-    def __init__(self) -> None:
+    def __init__(self, diagnostics=None) -> None:
         self.jitter_warnings = 0
         self.jitter_max = 0.0
         self.other: dict[tuple, list] = {}
         self._cm = None
+        self._diag = diagnostics
 
     @staticmethod
     def _is_jitter(w) -> bool:
@@ -155,11 +156,13 @@ class WarningLedger:
         return name == "NumericalWarning" or "added jitter" in text or "diagonal clamped" in text
 
     def __enter__(self) -> "WarningLedger":
-        from dslearn.types import JITTER
+        from dslearn.diagnostics import Diagnostics
 
-        self._j = JITTER
-        self._j0, self._jmax0 = JITTER.count, JITTER.max_jitter
-        JITTER.max_jitter = 0.0
+        if self._diag is None:  # a ledger of its own: count the kernels' jitter records here
+            self._own = Diagnostics().__enter__()
+            self._diag = self._own
+        else:
+            self._own = None
         self._cm = warnings.catch_warnings(record=True)
         self._log = self._cm.__enter__()
         warnings.simplefilter("always")
@@ -168,9 +171,10 @@ class WarningLedger:
 
     def __exit__(self, *exc) -> None:
         self._cm.__exit__(*exc)
-        self.events = self._j.count - self._j0
-        self.max = self._j.max_jitter
-        self._j.max_jitter = max(self._jmax0, self._j.max_jitter)
+        if self._own is not None:
+            self._own.__exit__(*exc)
+        self.events = self._diag.jitter.count
+        self.max = self._diag.jitter.max_jitter
         for w in self._log:
             if self._is_jitter(w):
                 m = _JITTER_RE.search(str(w.message))
@@ -179,7 +183,7 @@ class WarningLedger:
                         self.jitter_max = max(self.jitter_max, float(m.group(1)))
                     except ValueError:
                         pass
-                if "diagonal clamped" not in str(w.message):  # those are already in JITTER
+                if "diagonal clamped" not in str(w.message):  # those are already in the diagnostics
                     self.jitter_warnings += 1
                 continue
             key = (w.category, str(w.message))
@@ -206,7 +210,7 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
 
     Raises :class:`ConfigError` (before any work) for a bad configuration.
     """
-    from dslearn.config_schema import validate_config
+    from dslearn.schemas.core import validate_config
 
     out_dir = Path(out_dir)
     validate_config(cfg)
@@ -222,7 +226,7 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
     from dslearn.diagnostics import Diagnostics
 
     takes_diag = "diagnostics" in inspect.signature(fn).parameters
-    with Diagnostics() as diag, WarningLedger() as ledger:
+    with Diagnostics() as diag, WarningLedger(diag) as ledger:
         df = fn(cfg, diagnostics=diag) if takes_diag else fn(cfg)
     wall = time.perf_counter() - t0
     if not isinstance(df, pd.DataFrame) or not {"metric", "value"} <= set(df.columns):
@@ -235,8 +239,7 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
             df.insert(0, col, val)
     text = results_text(df)
     atomic_write_text(out_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
-    jitter = max(ledger.total, int(df.attrs.get("jitter_events", 0)))
-    diag.set_jitter(jitter, ledger.total_max)
+    jitter = ledger.total
     meta = {
         "dslearn_version": __version__,
         "git_commit": _git_commit(),
@@ -252,7 +255,7 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
         "jitter_events": jitter,
         "jitter_max": ledger.total_max,
         "argv": sys.argv[1:],
-        "diagnostics": diag.as_dict(),  # one object for every study: jitter, gating, timings
+        "diagnostics": {**diag.as_dict(), "jitter_events": jitter, "jitter_max": ledger.total_max},
         **_hydra_job(),
     }
     if jitter:
@@ -699,12 +702,12 @@ def sweep_combinations(argv: list[str]) -> tuple[list[list[str]], bool, DictConf
 def check_jobs(combos: list[list[str]], compose, visit=None) -> tuple[int, int]:
     """Validate every job's configuration; ConfigError naming the job on the first bad one.
     ``compose(overrides)`` composes one configuration (Hydra's ``compose``); ``visit(cfg)``
-    (default :func:`~dslearn.config_schema.validate_config`) is called with each job's
+    (default :func:`~dslearn.schemas.core.validate_config`) is called with each job's
     configuration, which is only valid during the call. Returns ``(jobs checked, full
     compositions made)``."""
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
 
-    from dslearn.config_schema import validate_config
+    from dslearn.schemas.core import validate_config
 
     visit = visit or validate_config
     many = len(combos) > 1

@@ -9,7 +9,7 @@ A Hydra app with its own config, ``conf/train_lstm.yaml`` (network and schedule 
         train_part=all val_part=all checkpoint=slstm.pt device=cuda
 
 Windows of ``lstm.obs_len + lstm.pred_len`` steps (every pedestrian of a window present
-at all of them) come from ``train_scenes`` (``train_part`` of each file) and
+at all of them) come from ``train_scenes`` (data sets of ``datasets``, ``conf/dataset/*.yaml``) (``train_part`` of each file) and
 ``val_scenes`` (``val_part``). Writes the checkpoint (``torch.save`` of state dict +
 hyperparameters; load with :func:`dslearn.models.lstm.load_checkpoint`, safe loading)
 and ``history.csv`` (per-epoch train/val loss, learning rate, new-best flag) into the run
@@ -27,8 +27,10 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
-from dslearn.data.ethucy import ALL_SCENES, load_scene, split_scene, windows
-from dslearn.config_schema import CONF_DIR as _CONF_DIR
+from dslearn.schemas.core import CONF_DIR as _CONF_DIR
+from dslearn.data.datasets import load_dataset, task_datasets
+from dslearn.data.ethucy import split_scene, windows
+from dslearn.data.window_tensors import cat_windows, per_agent, subsample
 from dslearn.errors import ConfigError, check_choice
 from dslearn.io import atomic_write_csv
 from dslearn.models.lstm import SCHEDULE_KEYS, SocialLSTM, schedule_from_config, train_lstm
@@ -40,15 +42,17 @@ DTYPES = {"float64": torch.float64, "float32": torch.float32}
 LSTM_GROUP_KEYS = ("embed", "hidden", "obs_len", "pred_len", "pooling", "grid", "neighbourhood", "noise_std") + SCHEDULE_KEYS
 
 
-def _windows(names, part: str, cfg: DictConfig, length: int) -> torch.Tensor | None:
-    from dslearn.studies.ethucy_forecast import _cat_windows
+def _load(cfg: DictConfig, name: str):
+    return load_dataset(task_datasets(cfg)[name], cfg.get("data_root"), str(cfg.convention))
 
+
+def _windows(names, part: str, cfg: DictConfig, length: int) -> torch.Tensor | None:
     parts = []
     for n in names:
-        sc = split_scene(load_scene(n, root=cfg.get("data_root"), convention=str(cfg.convention)), part)
+        sc = split_scene(_load(cfg, n), part)
         parts.append(windows(sc, length, int(cfg.stride), int(cfg.min_peds))[0])
     parts = [p for p in parts if p.shape[0] > 0]
-    return _cat_windows(parts) if parts else None
+    return cat_windows(parts) if parts else None
 
 
 def train(cfg: DictConfig, out_dir: str | Path) -> tuple[SocialLSTM, "object", Path]:
@@ -57,9 +61,10 @@ def train(cfg: DictConfig, out_dir: str | Path) -> tuple[SocialLSTM, "object", P
     if str(cfg.device).startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError("device=cuda was asked for but no CUDA device is available (torch.cuda.is_available() is False); use device=cpu")
     check_choice("dtype", cfg.dtype, tuple(DTYPES))
+    known = tuple(cfg.get("datasets") or {})
     for field in ("train_scenes", "val_scenes"):
         for s in cfg[field]:
-            check_choice(field, s, tuple(ALL_SCENES))
+            check_choice(field, s, known)
     if not list(cfg.train_scenes):
         raise ConfigError("train_scenes must name at least one scene")
     for field in ("train_part", "val_part"):
@@ -72,7 +77,7 @@ def train(cfg: DictConfig, out_dir: str | Path) -> tuple[SocialLSTM, "object", P
     sched = schedule_from_config(c, prefix="lstm")
     if "patience" in sched and not list(cfg.val_scenes):
         raise ConfigError("lstm.schedule=early_stopping needs validation windows: val_scenes must name at least one scene")
-    dts = {load_scene(s, root=cfg.get("data_root"), convention=str(cfg.convention)).dt for s in cfg.train_scenes}
+    dts = {task_datasets(cfg)[s].step(str(cfg.convention)) for s in cfg.train_scenes}
     if len(dts) > 1:
         raise ConfigError(f"train_scenes mix time steps {sorted(dts)} under convention={cfg.convention}; use convention=benchmark")
     model = SocialLSTM(
@@ -85,15 +90,11 @@ def train(cfg: DictConfig, out_dir: str | Path) -> tuple[SocialLSTM, "object", P
     if tr is None:
         raise ConfigError(f"train_scenes {list(cfg.train_scenes)} give no window of {length} steps")
     if cfg.get("max_windows") is not None:
-        from dslearn.studies.ethucy_forecast import _subsample
-
-        tr = _subsample(tr, int(cfg.max_windows))
+        tr = subsample(tr, int(cfg.max_windows))
     va = _windows(cfg.val_scenes, str(cfg.val_part), cfg, length) if list(cfg.val_scenes) else None
     if model.pooling == "none":  # independent pedestrians: one sequence each, no padding
-        from dslearn.studies.ethucy_forecast import _per_agent
-
-        tr = _per_agent(tr).unsqueeze(2)
-        va = None if va is None else _per_agent(va).unsqueeze(2)
+        tr = per_agent(tr).unsqueeze(2)
+        va = None if va is None else per_agent(va).unsqueeze(2)
     log.info("training %s on %d windows (%s), validating on %s", model.pooling, tr.shape[0], list(cfg.train_scenes),
              "none" if va is None else f"{va.shape[0]} windows")
     ckpt = Path(cfg.checkpoint) if cfg.get("checkpoint") else Path(out_dir) / f"lstm_{model.pooling}.pt"

@@ -13,6 +13,8 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
+from dslearn.diagnostics import SESSION, JitterLog, record_jitter  # noqa: F401  (JitterLog: re-exported)
+
 AGENT_DIM = 4
 POS = slice(0, 2)
 VEL = slice(2, 4)
@@ -66,19 +68,9 @@ def batch_jacobian(f: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool 
     return torch.stack(rows, dim=-2)
 
 
-class JitterLog:
-    """Counts the times a near-singular matrix needed jitter or a fallback."""
-
-    def __init__(self) -> None:
-        self.count = 0
-        self.max_jitter = 0.0
-
-    def record(self, jitter: float) -> None:
-        self.count += 1
-        self.max_jitter = max(self.max_jitter, float(jitter))
-
-
-JITTER = JitterLog()
+#: the jitter records of the session outside any run (``dslearn.diagnostics.SESSION``); a run's
+#: own records are in its :class:`~dslearn.diagnostics.Diagnostics`
+JITTER = SESSION.jitter
 
 
 def safe_cholesky(m: Tensor, max_tries: int = 6, log: Optional[JitterLog] = None) -> Tensor:
@@ -87,15 +79,15 @@ def safe_cholesky(m: Tensor, max_tries: int = 6, log: Optional[JitterLog] = None
     Jitter is per matrix and only for the matrices whose factorisation failed: it starts at
     1e-10 times that matrix's mean absolute diagonal and grows tenfold until the factor exists.
     Matrices of the batch that factor cleanly are left untouched (so one near-singular node
-    or episode never perturbs the others). Each jittered matrix is recorded in ``log``
-    (default: the module-wide :data:`JITTER`), so runs can report it.
+    or episode never perturbs the others). Each jittered matrix is recorded in ``log`` if given,
+    else in the open :class:`~dslearn.diagnostics.Diagnostics` (:func:`dslearn.diagnostics.record_jitter`).
     """
     m = symmetrize(m)
     chol, info = torch.linalg.cholesky_ex(m)
     bad = info > 0
     if not bool(bad.any()):
         return chol
-    log = log or JITTER
+    record = log.record if log is not None else record_jitter
     scale = m.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(1e-12)
     jitter = torch.where(bad, 1e-10 * scale, torch.zeros_like(scale))
     eye = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device)
@@ -105,7 +97,7 @@ def safe_cholesky(m: Tensor, max_tries: int = 6, log: Optional[JitterLog] = None
         still = info > 0
         if not bool(still.any()):
             for j in jitter[needed].tolist():
-                log.record(j)
+                record(j)
             return chol
         jitter = torch.where(still, 10.0 * jitter, jitter)
     raise torch.linalg.LinAlgError(

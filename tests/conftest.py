@@ -4,6 +4,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+import dslearn.schemas  # noqa: F401,E402  (registers the task schemas the configs name)
+
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dslearn.config_schema import validate_config
+from dslearn.schemas.core import validate_config
 from dslearn.errors import ConfigError, DataFormatError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -156,7 +156,7 @@ def test_cli_refuses_bad_values(tmp_path, overrides, expected):
 
 
 def test_memory_estimate_names_the_numbers(make_cfg):
-    from dslearn.config_schema import estimate_core_memory, memory_limit_gb
+    from dslearn.schemas.core import estimate_core_memory, memory_limit_gb
 
     est = estimate_core_memory(make_cfg("data.train_episodes=30", "data.test_episodes=20"))
     # GP: 30 episodes x 12 steps = 360 points -> buffer 384 + 256 = 640 rows; 10 nodes
@@ -179,7 +179,7 @@ def test_registry_matches_the_task_configs():
     """``task.entry`` must be registered; the registry is exactly the task configs' entries."""
     from omegaconf import OmegaConf
 
-    from dslearn.config_schema import TASK_ENTRIES
+    from dslearn.schemas.core import TASK_ENTRIES
 
     found = {}
     for p in (ROOT / "conf" / "task").glob("*.yaml"):
@@ -268,7 +268,7 @@ def test_interrupt_and_out_of_memory_in_process(tmp_path, monkeypatch):
     from dslearn.studies.yu import YuStudy
 
     def boom(exc):
-        def run(self, progress=False):
+        def run(self, progress=False, diagnostics=None):
             raise exc
         return run
 
@@ -359,7 +359,7 @@ def test_bad_entry_and_network(make_cfg):
 
 def test_yu_faults_task_checks(make_cfg):
     """Ranges and choices declared on the task schema (dslearn.schemas.yu_faults) name the field."""
-    from dslearn.config_schema import validate_config
+    from dslearn.schemas.core import validate_config
 
     for ov, msg in (
         (["task.link_fail=[0.1,1.5]"], "task.link_fail[1]=1.5 must be >= 0.0 and <= 1.0"),
@@ -378,7 +378,7 @@ def test_task_schema_rejects_unknown_keys_and_types_at_composition(make_cfg):
     """The task's schema is linked from its config file: Hydra refuses an unknown key or a wrong type."""
     from hydra.errors import ConfigCompositionException
 
-    from dslearn.config_schema import validate_config
+    from dslearn.schemas.core import validate_config
 
     for ov in (["task.typo=1"], ["task.train_episodes=abc"], ["task.link_fail=[a]"]):
         with pytest.raises(ConfigCompositionException):

@@ -11,7 +11,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from dslearn.config_schema import CONF_DIR, validate_config
+from dslearn.schemas.core import CONF_DIR, validate_config
 from dslearn.errors import ConfigError
 
 

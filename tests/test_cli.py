@@ -102,14 +102,14 @@ def test_hundred_job_grid_composes_few_times():
 def test_warning_ledger_counts_jitter_and_shows_others_once():
     from gpytorch.utils.warnings import NumericalWarning
 
-    from dslearn.types import JITTER
+    from dslearn.diagnostics import record_jitter
 
     with warnings.catch_warnings(record=True) as outer:
         warnings.simplefilter("always")
         with WarningLedger() as led:
             warnings.warn("A not p.d., added jitter of 1.0e-06 to the diagonal", NumericalWarning)
             warnings.warn("A not p.d., added jitter of 1.0e-04 to the diagonal", NumericalWarning)
-            JITTER.record(3e-8)
+            record_jitter(3e-8)  # what safe_cholesky records inside a run
             warnings.warn("OnlineGP.append: new point nearly dependent on the data; diagonal clamped")
             for _ in range(3):
                 warnings.warn("scene zara1: only 5 training episodes", UserWarning)

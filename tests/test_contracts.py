@@ -13,7 +13,7 @@ from hydra.utils import get_object
 from omegaconf import OmegaConf
 
 from dslearn.compose import build, build_fusion, build_motion_model, build_network, build_observation, build_scenario
-from dslearn.config_schema import CONF_DIR, validate_config
+from dslearn.schemas.core import CONF_DIR, validate_config
 from dslearn.models.base import MotionModel, ObservationModel
 
 GROUPS = sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and not p.name.startswith("_"))

@@ -188,15 +188,17 @@ def test_real_data_counts_and_dt():
 
 
 def test_split_scene_by_time_per_file(tmp_path):
-    """The benchmark's validation part starts at each file's VAL_FIRST_FRAME: a time split (no row
-    in both parts, nothing lost); fixture files without a known split go wholly to train."""
+    """The benchmark's validation part starts at each file's first validation frame (the data set
+    YAML's ``val_first_frame``, carried by the Scene): a time split (no row in both parts, nothing
+    lost); files without a split go wholly to train."""
     from dslearn.data.ethucy import VAL_FIRST_FRAME, Scene, split_scene
 
     cut = VAL_FIRST_FRAME["crowds_zara01.txt"]
     frames = [cut - 20, cut - 10, cut, cut + 10]
     df = pd.DataFrame({"frame": frames * 2, "ped": [1] * 4 + [2] * 4, "x": np.arange(8.0), "y": np.zeros(8),
                        "file": ["crowds_zara01.txt"] * 4 + ["fixture.txt"] * 4})
-    sc = Scene(name="toy", dt=0.4, convention="benchmark", df=df)
+    sc = Scene(name="toy", dt=0.4, convention="benchmark", df=df, val_first_frame={"crowds_zara01.txt": cut})
+    assert cut == 7110  # conf/dataset/zara1.yaml, as the data README's section 3
     tr, va = split_scene(sc, "train"), split_scene(sc, "val")
     assert sorted(va.df["frame"]) == [cut, cut + 10]
     assert (va.df["file"] == "crowds_zara01.txt").all()

@@ -1,26 +1,30 @@
 """ETH/UCY tracking study: episode extraction, arena network, SFM fit, end-to-end runs, config errors."""
 
 import math
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 import pytest
 import torch
-from omegaconf import OmegaConf
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 
+from dslearn.schemas.core import CONF_DIR
 from dslearn.data.episodes import _groups, extract_episodes, finite_difference_velocity, split_episodes
 from dslearn.data.ethucy import data_available
 from dslearn.errors import ConfigError
 from dslearn.models.social_force import SocialForce
 from dslearn.sim.network import is_connected
-from dslearn.sim.real import arena_network, perimeter_positions, scene_extent
+from dslearn.learning import sfm_fit
+from dslearn.learning.lstm import lstm_windows
+from dslearn.learning.gp import OnlineGP
+from dslearn.learning.means import ConstantVelocityMean
+from dslearn.schemas import validate_task
+from dslearn.sim.real import Data, arena_network, perimeter_positions, scene_extent
 from dslearn.sim.scenario import measure
 from dslearn.studies import ethucy_tracking as et
 from dslearn.types import StepContext
-
-CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -141,7 +145,7 @@ def _sfm_data(tau, alpha, beta, n=24, k=11, dt=0.4, seed=0):
     v1 = torch.tensor([1.0, 0.1]) + 0.2 * torch.rand(n, 2, generator=g, dtype=torch.float64)
     v2 = torch.tensor([-1.0, 0.0]) + 0.2 * torch.rand(n, 2, generator=g, dtype=torch.float64)
     x = torch.cat([p1, v1, p2, v2], -1)
-    model = et.episode_social_force(2, tau, alpha, beta).set_desired(torch.stack([v1, v2], 1))
+    model = sfm_fit.episode_social_force(2, tau, alpha, beta).set_desired(torch.stack([v1, v2], 1))
     traj = [x]
     for _ in range(k):
         x = model(x, StepContext(dt))
@@ -153,7 +157,7 @@ def test_episode_sfm_is_the_core_social_force():
     """The real-data study's SFM is the core model (bounded interactions included); per-episode
     desired velocities broadcast like one shared set, episode by episode."""
     desired = torch.tensor([[[1.0, -1.0], [-1.0, -1.0]], [[0.5, 0.2], [-0.3, 0.9]], [[0.0, 1.0], [1.0, 0.0]]], dtype=torch.float64)
-    ours = et.episode_social_force(2, 0.25, 6.0, 5.0).set_desired(desired)
+    ours = sfm_fit.episode_social_force(2, 0.25, 6.0, 5.0).set_desired(desired)
     assert isinstance(ours, SocialForce)
     x = torch.randn(3, 8, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     x[1, 4:6] = x[1, 0:2] + 0.05  # two agents nearly on one point: still finite
@@ -168,7 +172,7 @@ def test_sfm_fit_recovers_known_parameters():
     true = dict(tau=0.7, alpha=2.5, beta=0.8)
     states = _sfm_data(**true)
     # desired velocity = velocity in the t=0 state, as the simulation's initial velocity
-    params, loss = et.fit_social_force(states, 0.4, 1, refine_iters=300, refine_lr=0.05)
+    params, loss = sfm_fit.fit_social_force(states, 0.4, 1, refine_iters=300, refine_lr=0.05)
     # what the test is about: the parameters (the final roll-out loss depends on the CPU's
     # floating-point path: 0.009 on one machine where the parameters were within 0.7 %)
     assert math.isfinite(loss)
@@ -179,22 +183,34 @@ def test_sfm_fit_recovers_known_parameters():
 # ---------------------------------------------------------------------------------------------
 # end to end
 # ---------------------------------------------------------------------------------------------
-def tiny_cfg(**task):
-    t = OmegaConf.load(CONF / "task" / "ethucy_tracking.yaml")
-    base = {
-        "seed": 0, "device": "cpu", "dtype": "float64", "progress": False, "threads": 1, "study": "test",
-        "task": t,
-        "model": {"name": "gp_increment", "kind": "gp", "outputscale": 1.0, "lengthscale": 2.0, "noise_std": 0.5,
-                  "mean": "identity", "noise": "latent", "jacobian": "closed_form", "fit_every": 0, "fit_iters": 5, "fit_lr": 0.05},
-        "consensus": {"name": "hybrid", "iterations": 4, "weights": "uniform", "omega": "one"},
-        "filter": {"prior_pos_std": 4.0, "prior_vel_std": 2.0, "learn_gate_std": None},
-        "scenario": OmegaConf.load(CONF / "scenario" / "yu_two_agents.yaml"),
-        "network": OmegaConf.load(CONF / "network" / "yu.yaml"),
-    }
-    cfg = OmegaConf.create(base)
-    small = {"train_episodes": 4, "test_episodes": 3, "plot_episodes": 2, "lstm": {"epochs": 2},
-             "sfm": {"refine_iters": 3, "grid": {"tau": [0.5, 2.0], "alpha": [0.0, 1.0], "beta": [1.0]}}}
-    cfg.task = OmegaConf.merge(cfg.task, small, task)
+def _flat(d: dict, prefix: str = "task.") -> list[str]:
+    """``{"network": {"k_nearest": 0}}`` -> ``["task.network.k_nearest=0"]`` (Hydra overrides)."""
+    out = []
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out += _flat(v, f"{prefix}{k}.")
+        elif isinstance(v, (list, tuple)):
+            out.append(f"{prefix}{k}=[" + ",".join(str(x) for x in v) + "]")
+        else:
+            out.append(f"{prefix}{k}={'null' if v is None else v}")
+    return out
+
+
+SMALL = {"train_episodes": 4, "test_episodes": 3, "plot_episodes": 2, "lstm": {"epochs": 2},
+         "sfm": {"refine_iters": 3, "grid": {"tau": [0.5, 2.0], "alpha": [0.0, 1.0], "beta": [1.0]}}}
+
+
+def compose_cfg(*groups, **task):
+    """The composed ``experiment=real_tables`` config (root group overrides in ``groups``)."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return compose("config", overrides=["experiment=real_tables", "progress=false", "study=test", *groups,
+                                            *_flat(SMALL), *_flat(task)])
+
+
+def tiny_cfg(*groups, **task):
+    """The tiny run's config, composed and checked as ``dslearn-run`` does before any work."""
+    cfg = compose_cfg(*groups, **task)
+    validate_task(cfg)
     return cfg
 
 
@@ -226,8 +242,10 @@ def test_tables_end_to_end_on_a_real_scene(tmp_path):
     from dslearn.report import summarize
 
     df2 = df.assign(study="test", task="ethucy_tracking")
-    text = et.report(df2, summarize(df2), tmp_path)
-    assert "Table III" in text and (tmp_path / "ethucy_table3.md").exists() and (tmp_path / "ethucy_fig4_trajectories.png").exists()
+    from dslearn.reports.ethucy_tracking import report
+
+    text = report(df2, summarize(df2), tmp_path)
+    assert "Table III" in text and "ZARA1" in text  # the data set's label (conf/dataset/zara1.yaml) and (tmp_path / "ethucy_table3.md").exists() and (tmp_path / "ethucy_fig4_trajectories.png").exists()
 
 
 def test_data_size_end_to_end_on_synthetic(tmp_path):
@@ -237,7 +255,7 @@ def test_data_size_end_to_end_on_synthetic(tmp_path):
     assert set(sens["model"]) == {"gp_increment", "gp_increment_cv", "lstm"}
     assert set(sens["train_episodes"]) == {2, 4} and set(sens["seed"]) == {0, 1}
     assert (sens["data"] == "synthetic").all() and sens["value"].notna().all()
-    from dslearn.plotting.real import data_size_table, real_report
+    from dslearn.reports.ethucy_tracking import data_size_table, real_report
 
     tab = data_size_table(df)
     assert set(tab["seeds"]) == {2} and len(tab) == 6
@@ -255,8 +273,11 @@ def test_data_size_end_to_end_on_synthetic(tmp_path):
         ({"network": {"sensing_range": 0}}, "task.network.sensing_range"),
         ({"network": {"k_nearest": 0}}, "task.network.k_nearest"),
         ({"sfm": {"fit_on": "oracle"}}, "task.sfm.fit_on"),
+        ({"sfm": {"grid": {"tau": [0.5, -1.0]}}}, r"task.sfm.grid.tau\[1\]"),
+        ({"sfm": {"desired_steps": 13}}, "task.sfm.desired_steps"),
         ({"lstm": {"pooling": "max"}}, "task.lstm.pooling"),
         ({"lstm": {"pred_len": 20}}, "task.lstm.obs_len"),
+        ({"lstm": {"schedule": "sometimes"}}, "task.lstm.schedule"),
         ({"models": ["mlp"]}, "task.models"),
         ({"test_fraction": 1.5}, "task.test_fraction"),
         ({"scenes": ["mars"]}, "task.scenes"),
@@ -264,29 +285,33 @@ def test_data_size_end_to_end_on_synthetic(tmp_path):
         ({"protocol": "data_size", "models": ["gp", "lin"]}, "task.models"),
         ({"protocol": "data_size", "models": ["lin", "lstm"]}, "task.models"),
         ({"protocol": "data_size", "data_sizes": [0]}, "task.data_sizes"),
+        ({"datasets": {"zara1": {"frame_step": 0}}}, "task.datasets.zara1.frame_step"),
     ],
 )
 def test_bad_config_is_a_clear_error(override, field):
-    cfg = tiny_cfg(**override)
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
-        et.run(cfg)
+        tiny_cfg(**override)
+
+
+def test_unknown_keys_and_wrong_types_fail_at_composition():
+    for over, key in (({"bogus": 1}, "task.bogus"), ({"network": {"radius": 3}}, "task.network.radius"),
+                      ({"steps": "eleven"}, "task.steps"), ({"datasets": {"eth": {"fps": "fast"}}}, "task.datasets.eth.fps")):
+        with pytest.raises(ConfigCompositionException, match=key.replace(".", r"\.")):
+            compose_cfg(**over)
 
 
 def test_bad_root_groups_are_clear_errors():
-    cfg = tiny_cfg()
-    cfg.consensus.name = "centralized"
     with pytest.raises(ConfigError, match=r"consensus\.name"):
-        et.run(cfg)
-    cfg = tiny_cfg()
-    cfg.model.kind = "lin"
-    with pytest.raises(ConfigError, match=r"model\.kind"):
-        et.run(cfg)
+        tiny_cfg("consensus=centralized")
+    with pytest.raises(ConfigError, match=r"model\._target_=.*model=lin"):
+        tiny_cfg("model=lin")
+    tiny_cfg("model=lin", models=["lin", "sfm"])  # no GP asked for: any model group is fine
 
 
 def test_constant_velocity_mean_gp_falls_back_to_lin():
     from dslearn.models import ConstantVelocity
 
-    gp = et.ConstantVelocityMeanGP(3, 8, 8, 1.0, 2.0, 0.5, dt=0.4)
+    gp = OnlineGP(3, 8, 8, 1.0, 2.0, 0.5, mean=ConstantVelocityMean(0.4))
     x = torch.randn(3, 5, 8, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
     f = ConstantVelocity(2).matrix(0.4)
     mean, var, jac = gp.predict(x)
@@ -312,7 +337,7 @@ def test_cm_fused_ignores_uninformed_nodes():
     ep = measure(states, net, torch.Generator().manual_seed(0))
     assert ep.visible[0, 0, 0].all() and not ep.visible[1:, 0, 0].any()
     cfg = tiny_cfg()
-    data = et.Data("toy", "real", ep, ep, net, StepContext(0.4), ext, 2, {})
+    data = Data("toy", "real", ep, ep, net, StepContext(0.4), ext, 2, {})
     fused = et.cm_fused(cfg, data, ep)
     err0 = (fused[0, 0].unflatten(-1, (2, 4))[:, :2] - states[0, 0].unflatten(-1, (2, 4))[:, :2]).norm(dim=-1)
     assert (err0 < 0.7).all()  # a plain node average would sit ~2 m off (3 of 4 nodes at the prior's mean)
@@ -323,7 +348,7 @@ def test_lstm_early_stopping_holds_out_whole_episodes():
     from dslearn.models.lstm import holdout_split
 
     fused = torch.randn(5, 13, 8, dtype=torch.float64)
-    win, groups = et.lstm_windows(fused, 2, 10)
+    win, groups = lstm_windows(fused, 2, 10)
     assert win.shape == (5 * 2, 12, 2, 2) and groups.tolist() == [0, 1, 2, 3, 4] * 2
     tr, va = holdout_split(win, groups, 0.4, seed=0)
     assert len(tr) + len(va) == len(win) and len(va) == 2 * 2  # 2 of 5 episodes, both windows each
@@ -334,5 +359,4 @@ def test_lstm_early_stopping_holds_out_whole_episodes():
                    lstm={"schedule": "early_stopping", "epochs": 3, "patience": 1})
     df = et.run(cfg)
     assert set(df[df["metric"] == "pred_err"]["model"]) == {"gp_increment", "gp_increment_cv", "lstm"}
-    with pytest.raises(ConfigError, match="task.lstm.schedule"):
-        et.validate(tiny_cfg(lstm={"schedule": "sometimes"}))
+

@@ -412,7 +412,7 @@ def _cfg(seed=0, ablations=None, check=True, **over):
     then checked like ``dslearn-run`` does (root keys, the task schema and its cross-field rules)."""
     from hydra import compose, initialize_config_dir
 
-    from dslearn.config_schema import CONF_DIR, validate_config
+    from dslearn.schemas.core import CONF_DIR, validate_config
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = compose("config", overrides=["experiment=jiang_fg", f"seed={seed}", "progress=false"])

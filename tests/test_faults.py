@@ -17,7 +17,8 @@ from dslearn.fusion.faults import (
     live_weights,
     node_failure_schedule,
 )
-from dslearn.filters.information import GATE_STATS, chi2_quantile, novel_information
+from dslearn.diagnostics import Diagnostics
+from dslearn.filters.information import chi2_quantile, novel_information
 from dslearn.models import LinearPositionObservation
 from dslearn.sim.network import make_network
 from dslearn.sim.scenario import Episodes
@@ -117,9 +118,10 @@ def test_outliers_and_chi2_gate():
     meas = torch.tensor([[[[0.1, -0.1], [5.0, 5.0]]]], dtype=torch.float64)
     vis = torch.ones(1, 1, 2, dtype=torch.bool)
     dq0, do0 = novel_information(y, meas, vis, obs)
-    g0 = dict(GATE_STATS)
-    dq1, do1 = novel_information(y, meas, vis, obs, gate_prob=0.99, omega_pred=omega)
-    assert GATE_STATS["rejected"] - g0["rejected"] == 1 and GATE_STATS["tested"] - g0["tested"] == 2
+    with Diagnostics() as outer, Diagnostics() as d:  # the open contexts receive the gate's counts
+        dq1, do1 = novel_information(y, meas, vis, obs, gate_prob=0.99, omega_pred=omega)
+    assert d.gate_rejected == 1 and d.gate_tested == 2
+    assert (outer.gate_rejected, outer.gate_tested) == (1, 2)
     torch.testing.assert_close(do1[..., :4, :4], do0[..., :4, :4])  # target 1 kept
     assert (do1[..., 4:, 4:] == 0).all()  # target 2's gross error dropped
     dq2, do2 = novel_information(y, meas, vis, obs, gate_prob=None, omega_pred=omega)
@@ -170,7 +172,9 @@ def test_yu_faults_report(tmp_path):
     cfg = _tiny_cfg(models=["lin"], fusions=["hybrid", "cm"], train_episodes=0, test_episodes=2,
                     link_fail=[0.0, 0.5], node_fail=[0.0, 0.4], joint=[[0.3, 0.2]])
     df = yu_faults.run(cfg)
-    text = yu_faults.report(df, summarize(df), tmp_path)
+    from dslearn.reports.yu_faults import report
+
+    text = report(df, summarize(df), tmp_path)
     assert "link-failure" in text and (tmp_path / "yu_faults_link.png").is_file() and (tmp_path / "yu_faults_node.png").is_file()
     assert (tmp_path / "yu_faults_joint.csv").is_file()
 

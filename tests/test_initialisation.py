@@ -58,12 +58,16 @@ def test_sfm_individual_stays_bounded_at_every_sensor(make_cfg):
     events when both agents' priors sat on one point (8.3 m, 3,815 events on this layout before
     the fix). Now every sensor stays below 1 m; most of the late sensor's error is the diffuse
     prior's before it first sees the agents (from about t = 3-4, of 12 steps)."""
+    from dslearn.diagnostics import Diagnostics
+
     study = _study(make_cfg, "sfm", "individual", "data.train_episodes=0", "data.test_episodes=50")
-    df = study.run()
+    with Diagnostics() as diag:  # the run's diagnostics receive every jitter record
+        df = study.run(diagnostics=diag)
     err = _sensor_means(df, "track_err")
     assert torch.isfinite(torch.tensor(df["value"].to_numpy())).all()
     assert (err < 1.0).all(), err.to_dict()
-    assert df.attrs["jitter_events"] <= 5  # counted: 0 in the measured runs
+    assert diag.jitter.count <= 5  # counted: 0 in the measured runs
+    assert diag.counts["train_episodes_seen"] == 0 and diag.timings["evaluate_s"] > 0
 
 
 @pytest.mark.parametrize("consensus", ["hybrid", "hybrid_nodes"])

@@ -11,7 +11,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from dslearn.config_schema import CONF_DIR
+from dslearn.schemas.core import CONF_DIR
 from dslearn.errors import ConfigError
 from dslearn.schemas import validate_task
 from dslearn.sim import manoeuvres

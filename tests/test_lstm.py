@@ -280,13 +280,14 @@ def test_schedule_config_errors():
 
 @pytest.mark.skipif(not data_available(), reason="ETH/UCY data root not found")
 def test_train_lstm_app_early_stopping(tmp_path):
+    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
     from dslearn import train_lstm as app
 
-    conf = app.CONF_DIR
-    cfg = OmegaConf.merge(OmegaConf.load(f"{conf}/train_lstm.yaml"), {"lstm": OmegaConf.load(f"{conf}/lstm/default.yaml")})
-    del cfg["defaults"], cfg["hydra"]
+    with initialize_config_dir(config_dir=app.CONF_DIR, version_base=None):
+        cfg = compose("train_lstm")
+    assert "zara1" in cfg.datasets and list(cfg.datasets.univ.files) == ["students001.txt", "students003.txt"]
     over = {"train_scenes": ["zara1"], "val_scenes": ["zara1"], "stride": 5, "max_windows": 40, "progress": False,
             "lstm": {"embed": 8, "hidden": 8, "schedule": "early_stopping", "epochs": 4, "patience": 1}}
     cfg = OmegaConf.merge(cfg, over)
@@ -295,6 +296,7 @@ def test_train_lstm_app_early_stopping(tmp_path):
     assert 1 <= len(hist) <= 4 and hist.attrs["restored_epoch"] == hist.attrs["best_epoch"] == int(hist.val_loss.idxmin()) + 1
     assert load_checkpoint(ckpt).checkpoint_history.val_loss.tolist() == hist.val_loss.tolist()
     for bad, msg in (({"val_scenes": []}, "val_scenes"), ({"lstm": {"schedule": "sgdr"}}, "lstm.schedule"),
+                     ({"train_scenes": ["atlantis"]}, "train_scenes"),
                      ({"lstm": {"patience": -1}}, "lstm.patience")):
         with pytest.raises(ConfigError, match=msg):
             app.train(OmegaConf.merge(cfg, bad), tmp_path)

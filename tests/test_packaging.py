@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from dslearn.config_schema import CONF_DIR
+from dslearn.schemas.core import CONF_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -355,7 +355,7 @@ def _tiny_cfg(**over):
 def _compose(overrides, check=True):
     from hydra import compose, initialize_config_dir
 
-    from dslearn.config_schema import CONF_DIR, validate_config
+    from dslearn.schemas.core import CONF_DIR, validate_config
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = compose("config", overrides=["experiment=braga_tbn", "progress=false", *overrides])

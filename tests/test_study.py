@@ -110,7 +110,7 @@ def test_runner_writes_results_and_report(make_cfg, tmp_path):
 def test_interrupted_run_leaves_no_results(make_cfg, tmp_path, monkeypatch):
     cfg = make_cfg("model=lin", *TINY)
 
-    def boom(self, progress=False):
+    def boom(self, progress=False, diagnostics=None):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(YuStudy, "run", boom)

@@ -4,26 +4,17 @@ The data and its quirks are described in ``../shared/data/eth_ucy/README.md`` (r
 plain-text files, one observation per line, 4 tab-separated fields ``frame_id ped_id x y``
 (metres), one row per pedestrian every 10 video frames.
 
-Scenes (:data:`SCENES`, the five benchmark scenes of Social LSTM / Social GAN):
+Scenes are data sets described by configuration (:mod:`dslearn.data.datasets`): one YAML per
+scene in ``conf/dataset/`` (``eth``: ``biwi_eth.txt``; ``hotel``; ``zara1``; ``zara2``; ``univ``:
+``students001.txt`` + ``students003.txt``; the training-only ``zara3`` and ``uni_examples``), with
+its files, label, frame step, time steps and benchmark train/validation split. The
+leave-one-scene-out folds are ``conf/folds/ethucy.yaml`` (:func:`fold_scenes`). :data:`SCENES`,
+:data:`ALL_SCENES` and :data:`VAL_FIRST_FRAME` are read from those files.
 
-==========  ==========================================
-scene       standard file(s)
-==========  ==========================================
-``eth``     ``biwi_eth.txt``
-``hotel``   ``biwi_hotel.txt``
-``zara1``   ``crowds_zara01.txt``
-``zara2``   ``crowds_zara02.txt``
-``univ``    ``students001.txt`` + ``students003.txt``
-==========  ==========================================
-
-``crowds_zara03.txt`` and ``uni_examples.txt`` are never test scenes; they are training data
-in every fold and can be loaded as the scenes ``zara3`` and ``uni_examples``
-(:data:`ALL_SCENES`). :func:`fold_scenes` gives the standard leave-one-scene-out split.
-
-Time step (:func:`scene_dt`): one row step (10 frames) is 0.4 s under the ``benchmark``
-convention for every file (what published ADE/FDE numbers use). Under the ``physical``
-convention ``biwi_eth.txt`` is 10/15 s ≈ 0.667 s (its video is ~15 fps, see the README's
-time-step note) and every other file 0.4 s.
+Time step: one row step (10 frames) is 0.4 s under the ``benchmark`` convention for every file
+(what published ADE/FDE numbers use). Under the ``physical`` convention it is ``frame_step / fps``:
+10/15 s ≈ 0.667 s for ``biwi_eth.txt`` (its video is ~15 fps, see the data README's time-step
+note), 0.4 s for every other file.
 
 Python use::
 
@@ -37,7 +28,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -47,38 +38,33 @@ from torch import Tensor
 
 from dslearn.errors import ConfigError, DataFormatError, check_choice
 
-#: benchmark scene -> standard files (the five leave-one-scene-out test scenes)
-SCENES: dict[str, tuple[str, ...]] = {
-    "eth": ("biwi_eth.txt",),
-    "hotel": ("biwi_hotel.txt",),
-    "zara1": ("crowds_zara01.txt",),
-    "zara2": ("crowds_zara02.txt",),
-    "univ": ("students001.txt", "students003.txt"),
-}
-#: training-only files, loadable as scenes of their own
-TRAIN_ONLY: dict[str, tuple[str, ...]] = {
-    "zara3": ("crowds_zara03.txt",),
-    "uni_examples": ("uni_examples.txt",),
-}
-ALL_SCENES: dict[str, tuple[str, ...]] = {**SCENES, **TRAIN_ONLY}
 CONVENTIONS = ("benchmark", "physical")
-FRAMES_PER_STEP = 10
-#: offset that makes pedestrian ids unique across the files of one scene
-PED_OFFSET = 100_000
 ENV_ROOT = "DSLEARN_ETHUCY_ROOT"
-#: benchmark train/validation split in time (README section 3): rows with frame_id >= this
-#: value are the validation part of a training file (the earlier ~80 % is the train part)
-VAL_FIRST_FRAME: dict[str, int] = {
-    "biwi_eth.txt": 10240,
-    "biwi_hotel.txt": 14400,
-    "crowds_zara01.txt": 7110,
-    "crowds_zara02.txt": 8420,
-    "crowds_zara03.txt": 6030,
-    "students001.txt": 3550,
-    "students003.txt": 4320,
-    "uni_examples.txt": 5940,
-}
 SPLIT_PARTS = ("all", "train", "val")
+
+
+def _scene_files(names) -> dict[str, tuple[str, ...]]:
+    from dslearn.data.datasets import packaged_dataset
+
+    return {n: packaged_dataset(n).files for n in names}
+
+
+def __getattr__(name: str):
+    """``SCENES`` (the five benchmark test scenes), ``ALL_SCENES`` (the fold pool), ``TRAIN_ONLY`` and
+    ``VAL_FIRST_FRAME`` (file -> first validation frame), read from ``conf/dataset/*.yaml`` and
+    ``conf/folds/ethucy.yaml`` (no scene, file or split is fixed in code)."""
+    from dslearn.data.datasets import packaged_dataset, packaged_folds
+
+    folds = packaged_folds("ethucy")
+    if name == "SCENES":
+        return _scene_files(folds["test"])
+    if name == "ALL_SCENES":
+        return _scene_files(folds["pool"])
+    if name == "TRAIN_ONLY":
+        return _scene_files([s for s in folds["pool"] if s not in folds["test"]])
+    if name == "VAL_FIRST_FRAME":
+        return {f: v for n in folds["pool"] for f, v in packaged_dataset(n).split().items()}
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _default_path() -> Path:
@@ -108,8 +94,7 @@ def default_root() -> Path:
     return root
 
 
-#: name of the data-root key in every study's task config (one name everywhere)
-DATA_ROOT_KEY = "task.data_root"
+from dslearn.data.datasets import DATA_ROOT_KEY, PED_OFFSET  # noqa: E402,F401  (one name everywhere)
 
 
 def _decode(path: Path, raw: bytes) -> str:
@@ -207,15 +192,17 @@ def _is_number(text: str) -> bool:
 
 
 def scene_dt(file_name: str, convention: str = "benchmark") -> float:
-    """Seconds per row step (10 frames) of a standard file.
+    """Seconds per row step of a packaged data set's file (by its base name), from its YAML:
+    ``dt`` under ``benchmark``, ``frame_step / fps`` under ``physical``."""
+    from dslearn.data.datasets import packaged_dataset, packaged_names
 
-    ``benchmark``: 0.4 s for every file (published ADE/FDE numbers). ``physical``: 10/15 s
-    for ``biwi_eth.txt`` (~15 fps video), 0.4 s otherwise.
-    """
     check_choice("convention", convention, CONVENTIONS)
-    if convention == "physical" and Path(file_name).name == "biwi_eth.txt":
-        return 10.0 / 15.0
-    return 0.4
+    base = Path(file_name).name
+    for n in packaged_names():
+        spec = packaged_dataset(n)
+        if base in spec.files:
+            return spec.step(convention)
+    raise ConfigError(f"file {base!r} is in no conf/dataset/*.yaml data set")
 
 
 @dataclass
@@ -236,6 +223,9 @@ class Scene:
     dt: float
     convention: str
     df: pd.DataFrame
+    label: str = ""
+    #: file -> first frame of the benchmark's validation part (files not in it go wholly to train)
+    val_first_frame: dict = field(default_factory=dict)
 
     def tracks(self) -> dict[int, Tensor]:
         """``ped -> (T_i, 3)`` float64 rows ``[step, x, y]`` at consecutive steps.
@@ -253,38 +243,15 @@ class Scene:
 
 
 def load_scene(name: str, root: str | Path | None = None, convention: str = "benchmark") -> Scene:
-    """Load a scene (a key of :data:`ALL_SCENES`) from ``root`` (default :func:`default_root`).
+    """Load a packaged data set (``conf/dataset/<name>.yaml``) from ``root`` (default :func:`default_root`).
 
     Raises:
         ConfigError: unknown scene or convention, missing data root.
-        DataFormatError: a malformed file, or a frame id that is not a multiple of 10.
+        DataFormatError: a malformed file, or a frame id that is not a multiple of the frame step.
     """
-    check_choice("scene", name, tuple(ALL_SCENES))
-    check_choice("convention", convention, CONVENTIONS)
-    root = default_root() if root is None else Path(root)
-    if not root.is_dir():
-        what = "is a file, not a folder" if root.exists() else "does not exist"
-        raise ConfigError(f"{DATA_ROOT_KEY}={str(root)!r} {what}; give the eth_ucy folder (the one holding biwi_eth.txt, ...)")
-    dts = {scene_dt(f, convention) for f in ALL_SCENES[name]}
-    if len(dts) != 1:  # cannot happen with the standard scenes
-        raise ConfigError(f"scene {name}: files have different time steps {sorted(dts)}")
-    dt = dts.pop()
-    parts = []
-    for k, fname in enumerate(ALL_SCENES[name]):
-        path = root / fname
-        if not path.is_file():
-            raise ConfigError(f"{DATA_ROOT_KEY}={str(root)!r} has no file {fname} (scene {name})")
-        d = read_trajectories(path)
-        off = d["frame"] % FRAMES_PER_STEP != 0
-        if off.any():
-            raise DataFormatError(f"{path}: frame {int(d.frame[off].iloc[0])} is not a multiple of {FRAMES_PER_STEP}")
-        step = d["frame"] // FRAMES_PER_STEP
-        d.insert(0, "file", fname)
-        d["ped"] = d["ped"] + k * PED_OFFSET
-        d["step"] = (step - step.min()).astype(np.int64)
-        d["t"] = d["step"] * dt
-        parts.append(d[["file", "frame", "ped", "step", "t", "x", "y"]])
-    return Scene(name=name, dt=dt, convention=convention, df=pd.concat(parts, ignore_index=True))
+    from dslearn.data.datasets import load_dataset, packaged_dataset
+
+    return load_dataset(packaged_dataset(name), root, convention)
 
 
 def split_scene(scene: Scene, part: str) -> Scene:
@@ -296,20 +263,21 @@ def split_scene(scene: Scene, part: str) -> Scene:
     check_choice("part", part, SPLIT_PARTS)
     if part == "all":
         return scene
-    first = scene.df["file"].map(lambda f: VAL_FIRST_FRAME.get(f, np.iinfo(np.int64).max))
+    first = scene.df["file"].map(lambda f: scene.val_first_frame.get(f, np.iinfo(np.int64).max))
     is_val = scene.df["frame"] >= first
     keep = is_val if part == "val" else ~is_val
-    return Scene(name=f"{scene.name}:{part}", dt=scene.dt, convention=scene.convention, df=scene.df[keep].reset_index(drop=True))
+    return Scene(name=f"{scene.name}:{part}", dt=scene.dt, convention=scene.convention, df=scene.df[keep].reset_index(drop=True),
+                 label=scene.label, val_first_frame=scene.val_first_frame)
 
 
 def fold_scenes(test_scene: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """Leave-one-scene-out fold: ``(test scenes, training scenes)``.
+    """Leave-one-scene-out fold of ``conf/folds/ethucy.yaml``: ``(test scenes, training scenes)``
+    (training = the pool minus the test scene, so ``zara3`` and ``uni_examples`` always train)."""
+    from dslearn.data.datasets import leave_one_out, packaged_folds
 
-    Training uses every other scene of :data:`ALL_SCENES` (so ``zara3`` and
-    ``uni_examples`` always train), as in the README's protocol table.
-    """
-    check_choice("test scene", test_scene, tuple(SCENES))
-    return (test_scene,), tuple(s for s in ALL_SCENES if s != test_scene)
+    folds = packaged_folds("ethucy")
+    check_choice("test scene", test_scene, tuple(folds["test"]))
+    return (test_scene,), leave_one_out(test_scene, folds["pool"])
 
 
 def windows(

@@ -12,6 +12,7 @@ import math
 import torch
 from torch import Tensor
 
+from dslearn.diagnostics import record_gate
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.types import AGENT_DIM, StepContext, safe_cholesky, spd_inverse, symmetrize
 
@@ -62,8 +63,6 @@ class ExtendedPredict:
         return predict(mean, omega, model, ctx, full=full)
 
 
-#: chi-square gating counters (``novel_information(..., gate_prob=...)``): measurements tested / rejected
-GATE_STATS = {"tested": 0, "rejected": 0}
 
 
 def chi2_quantile(prob: float, dof: int) -> float:
@@ -96,7 +95,7 @@ def novel_information(
     innovation :math:`\nu = z - h(\hat y_j)` passes the chi-square gate
     :math:`\nu^T S^{-1} \nu \le \chi^2_{D_z}(p)`, :math:`S = C_j P_{jj} C_j^T + R_j` with
     :math:`P = (\Omega^{t|t-1})^{-1}` from ``omega_pred`` (``R`` alone if ``omega_pred`` is None).
-    Rejected measurements count in :data:`GATE_STATS`.
+    Tested and rejected measurements are recorded in the open :class:`~dslearn.diagnostics.Diagnostics`.
 
     Args:
         y_pred: ``(S, B, Dx)``; meas: ``(S, B, A, 2)``; visible: ``(S, B, A)`` bool.
@@ -139,6 +138,5 @@ def _gate(nu: Tensor, C: Tensor, R: Tensor, omega_pred: Tensor | None, visible: 
         S_cov = symmetrize(C @ Pjj @ C.transpose(-1, -2) + R)
     d2 = (nu.unsqueeze(-2) @ torch.linalg.solve(S_cov, nu.unsqueeze(-1))).squeeze(-1).squeeze(-1)
     ok = d2 <= chi2_quantile(prob, nu.shape[-1])
-    GATE_STATS["tested"] += int(visible.sum())
-    GATE_STATS["rejected"] += int((visible & ~ok).sum())
+    record_gate(int(visible.sum()), int((visible & ~ok).sum()))
     return visible & ok

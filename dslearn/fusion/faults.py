@@ -147,12 +147,7 @@ class FaultyFusion:
         self.nominal_links += float(self.adj.sum()) / 2 * live.shape[0]
         w = live_weights(live, self.method)
         wl = torch.linalg.matrix_power(w, self.base.iterations)
-        saved = self.base.wl
-        self.base.wl = wl.to(q_pred)
-        try:
-            return self.base(q_pred, o_pred, dq, do)
-        finally:
-            self.base.wl = saved
+        return self.base(q_pred, o_pred, dq, do, wl=wl.to(q_pred))
 
 
 def node_failure_schedule(

@@ -68,7 +68,11 @@ class Fusion:
         fusion.weights_rule = str(weights)
         return fusion
 
-    def __call__(self, q_pred: Tensor, o_pred: Tensor, dq: Tensor, do: Tensor) -> tuple[Tensor, Tensor]:
+    def __call__(self, q_pred: Tensor, o_pred: Tensor, dq: Tensor, do: Tensor,
+                 wl: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Fuse: prior pair ``(S, B, Dx)``, ``(S, B, Dx, Dx)`` and novel pair of the same shapes.
+        ``wl``: this step's ``W^L`` (``(S, S)`` or per episode ``(B, S, S)``) instead of the
+        nominal one, e.g. on a faulty network (:class:`~dslearn.fusion.faults.FaultyFusion`)."""
         raise NotImplementedError
 
 
@@ -77,7 +81,7 @@ class Individual(Fusion):
 
     name = "individual"
 
-    def __call__(self, q_pred, o_pred, dq, do):
+    def __call__(self, q_pred, o_pred, dq, do, wl=None):
         return q_pred + dq, symmetrize(o_pred + do)
 
 
@@ -89,7 +93,7 @@ class Centralized(Fusion):
 
     name = "centralized"
 
-    def __call__(self, q_pred, o_pred, dq, do):
+    def __call__(self, q_pred, o_pred, dq, do, wl=None):
         return q_pred + dq.sum(0, keepdim=True), symmetrize(o_pred + do.sum(0, keepdim=True))
 
 
@@ -99,8 +103,9 @@ class ConsensusOnMeasurements(Fusion):
     name = "cm"
     uses_omega = True
 
-    def __call__(self, q_pred, o_pred, dq, do):
-        return q_pred + self.omega * mix(self.wl, dq), symmetrize(o_pred + self.omega * mix(self.wl, do))
+    def __call__(self, q_pred, o_pred, dq, do, wl=None):
+        w = self.wl if wl is None else wl
+        return q_pred + self.omega * mix(w, dq), symmetrize(o_pred + self.omega * mix(w, do))
 
 
 class ConsensusOnInformation(Fusion):
@@ -108,8 +113,9 @@ class ConsensusOnInformation(Fusion):
 
     name = "ci"
 
-    def __call__(self, q_pred, o_pred, dq, do):
-        return mix(self.wl, q_pred + dq), symmetrize(mix(self.wl, o_pred + do))
+    def __call__(self, q_pred, o_pred, dq, do, wl=None):
+        w = self.wl if wl is None else wl
+        return mix(w, q_pred + dq), symmetrize(mix(w, o_pred + do))
 
 
 class HybridConsensus(Fusion):
@@ -123,9 +129,10 @@ class HybridConsensus(Fusion):
     name = "hybrid"
     uses_omega = True
 
-    def __call__(self, q_pred, o_pred, dq, do):
-        q = mix(self.wl, q_pred) + self.omega * mix(self.wl, dq)
-        o = mix(self.wl, o_pred) + self.omega * mix(self.wl, do)
+    def __call__(self, q_pred, o_pred, dq, do, wl=None):
+        w = self.wl if wl is None else wl
+        q = mix(w, q_pred) + self.omega * mix(w, dq)
+        o = mix(w, o_pred) + self.omega * mix(w, do)
         return q, symmetrize(o)
 
 
@@ -136,10 +143,11 @@ class ConsensusOnEstimates(Fusion):
 
     name = "ce"
 
-    def __call__(self, q_pred, o_pred, dq, do):
+    def __call__(self, q_pred, o_pred, dq, do, wl=None):
+        w = self.wl if wl is None else wl
         o = symmetrize(o_pred + do)
         y = torch.linalg.solve(o, (q_pred + dq).unsqueeze(-1)).squeeze(-1)
-        y = mix(self.wl, y)
+        y = mix(w, y)
         return (o @ y.unsqueeze(-1)).squeeze(-1), o
 
 

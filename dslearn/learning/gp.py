@@ -22,8 +22,10 @@ import gpytorch
 import torch
 from torch import Tensor, nn
 
+from dslearn.learning.means import NAMED, PriorMeanModule
 from dslearn.errors import ConfigError, check_choice, check_positive
-from dslearn.types import JITTER, StepContext, safe_cholesky
+from dslearn.diagnostics import record_jitter
+from dslearn.types import StepContext, safe_cholesky
 
 MEANS = ("zero", "constant", "identity")
 
@@ -40,26 +42,35 @@ def _same_input(a: Tensor, b: Tensor, version: int) -> bool:
 
 
 class PriorMean:
-    """Prior mean m(x) (zero / constant / identity) and its Jacobian, for GP classes with
-    ``mean_type``, ``output_dim``, ``input_dim`` (and ``constant`` for the constant mean).
-    Shapes ``(S, N, d) -> (S, N, Dy)`` and ``(S, N, Dy, d)``."""
+    """The prior mean m(x) and its Jacobian for GP backends: a module of
+    :mod:`dslearn.learning.means` (``self.mean_module``), or the backend's own learned constant
+    (``mean_type == "constant"``, the parameter ``constant``). Shapes ``(S, N, d) -> (S, N, Dy)``
+    and ``(S, N, Dy, d)``."""
 
     mean_type: str
     output_dim: int
     input_dim: int
+    mean_module: PriorMeanModule | None
+
+    def _set_mean(self, mean) -> None:
+        """``mean``: a name in :data:`MEANS` or a :class:`~dslearn.learning.means.PriorMeanModule`."""
+        if isinstance(mean, PriorMeanModule):
+            self.mean_type, module = mean.name, mean
+        else:
+            check_choice("model.mean", mean, MEANS)
+            self.mean_type = str(mean)
+            module = None if mean == "constant" else NAMED[mean]()
+        self.mean_module = None if module is None else module.bind(self.input_dim, self.output_dim)
 
     def prior_mean(self, x: Tensor) -> Tensor:
-        if self.mean_type == "identity":
-            return x[..., : self.output_dim]
-        if self.mean_type == "constant":
+        if self.mean_module is None:
             return self.constant.detach().unsqueeze(-2).expand(*x.shape[:-1], self.output_dim)
-        return x.new_zeros(*x.shape[:-1], self.output_dim)
+        return self.mean_module(x)
 
     def prior_mean_jacobian(self, x: Tensor) -> Tensor:
-        j = x.new_zeros(*x.shape[:-1], self.output_dim, self.input_dim)
-        if self.mean_type == "identity":
-            j[..., range(self.output_dim), range(self.output_dim)] = 1.0
-        return j
+        if self.mean_module is None:
+            return x.new_zeros(*x.shape[:-1], self.output_dim, self.input_dim)
+        return self.mean_module.jacobian(x)
 
 
 class OnlineGP(PriorMean, nn.Module):
@@ -76,7 +87,8 @@ class OnlineGP(PriorMean, nn.Module):
         lengthscale: :math:`l` (> 0).
         noise_std: :math:`\sigma_\epsilon` (> 0).
         mean: prior mean: ``zero``; ``constant`` (learned by :meth:`fit`); ``identity``
-            (``m(x) = x[..., :Dy]``, so the GP learns the increment).
+            (``m(x) = x[..., :Dy]``, so the GP learns the increment); or a module of
+            :mod:`dslearn.learning.means` (e.g. ``ConstantVelocityMean(dt)``).
         capacity: initial buffer size (grows by doubling).
     """
 
@@ -88,7 +100,7 @@ class OnlineGP(PriorMean, nn.Module):
         outputscale: float = 1.0,
         lengthscale: float = 2.0,
         noise_std: float = 0.5,
-        mean: str = "zero",
+        mean: str | PriorMeanModule = "zero",
         capacity: int = 256,
         dtype: torch.dtype = torch.float64,
         device: str | torch.device = "cpu",
@@ -97,11 +109,8 @@ class OnlineGP(PriorMean, nn.Module):
         check_positive("model.outputscale", outputscale)
         check_positive("model.lengthscale", lengthscale)
         check_positive("model.noise_std", noise_std)
-        check_choice("model.mean", mean, MEANS)
-        if mean == "identity" and output_dim > input_dim:
-            raise ConfigError("model.mean=identity needs output_dim <= input_dim")
         self.num_nodes, self.input_dim, self.output_dim = int(num_nodes), int(input_dim), int(output_dim)
-        self.mean_type = mean
+        self._set_mean(mean)
         bs = torch.Size([self.num_nodes])
         self.covar_module = gpytorch.kernels.ScaleKernel(gpytorch.kernels.RBFKernel(batch_shape=bs), batch_shape=bs)
         self.covar_module.outputscale = torch.full(bs, float(outputscale) ** 2)
@@ -199,7 +208,7 @@ class OnlineGP(PriorMean, nn.Module):
         floor = 1e-10 * (kxx + self.noise_var)
         if self.device_.type == "cpu":  # on CUDA no host round-trip: clamp silently (counted on device)
             if bool((d2[valid] < floor[valid]).any()):
-                JITTER.record(float((floor - d2).clamp_min(0).max()))
+                record_jitter(float((floor - d2).clamp_min(0).max()))
                 warnings.warn("OnlineGP.append: new point nearly dependent on the data; diagonal clamped")
         else:
             self.clamped = self.clamped + ((d2 < floor) & valid).sum()

@@ -129,13 +129,10 @@ class _SparseBase(PriorMean, nn.Module):
         check_positive("model.outputscale", outputscale)
         check_positive("model.lengthscale", lengthscale)
         check_positive("model.noise_std", noise_std)
-        check_choice("model.mean", mean, MEANS)
         if mean == "constant":
             raise ConfigError("model.mean=constant is not available for the sparse GP variants (no fit); use zero or identity")
-        if mean == "identity" and output_dim > input_dim:
-            raise ConfigError("model.mean=identity needs output_dim <= input_dim")
         self.num_nodes, self.input_dim, self.output_dim = int(num_nodes), int(input_dim), int(output_dim)
-        self.mean_type = mean
+        self._set_mean(mean)
         self.dtype_, self.device_ = dtype, torch.device(device)
         kw = dict(dtype=dtype, device=self.device_)
         s = self.num_nodes

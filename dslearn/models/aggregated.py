@@ -68,7 +68,7 @@ class AggregatedGPMotion(MotionModel):
                  jacobian: str = "exact"):
         super().__init__()
         if not isinstance(base, GPMotionModel):
-            raise ConfigError("AggregatedGPMotion wraps a GPMotionModel (model.kind=gp)")
+            raise ConfigError("AggregatedGPMotion wraps a GPMotionModel (a model=gp* option)")
         check_choice("model.aggregation", method, RULES)
         check_choice("model.aggregation_jacobian", jacobian, JACOBIANS)
         self.base = base
@@ -178,16 +178,3 @@ def aggregated_for_scenario(*, scenario, num_nodes: int, dtype, device, aggregat
         raise ConfigError("model.noise=adaptive is not available for an aggregated GP; use latent or predictive")
     base = GPMotionModel(scenario.state_dim, num_nodes, dtype=dtype, device=device, **gp_keys)
     return AggregatedGPMotion(base, str(aggregation), bool(normalise_beta), str(aggregation_jacobian))
-
-
-def build_aggregated_motion(c, state_dim: int, num_nodes: int, dtype, device) -> AggregatedGPMotion:
-    """Model config (``conf/model/gp*_rbcm.yaml``: the GP keys + ``aggregation``,
-    ``normalise_beta``, ``aggregation_jacobian``) -> :class:`AggregatedGPMotion`."""
-    if str(c.noise) == "adaptive":
-        raise ConfigError("model.noise=adaptive is not available for an aggregated GP (model.kind=gp_aggregated); use latent or predictive")
-    base = GPMotionModel(
-        state_dim, num_nodes, outputscale=c.outputscale, lengthscale=c.lengthscale,
-        noise_std=c.noise_std, mean=c.mean, noise=c.noise, jacobian=c.jacobian,
-        fit_every=c.fit_every, fit_iters=c.fit_iters, fit_lr=c.fit_lr, dtype=dtype, device=device)
-    return AggregatedGPMotion(base, str(c.aggregation), bool(c.get("normalise_beta", False)),
-                              str(c.get("aggregation_jacobian", "exact")))

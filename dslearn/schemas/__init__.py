@@ -1,9 +1,11 @@
-"""Structured-config schemas of every task (see :mod:`dslearn.schemas.base`). Importing this
-package registers them all in Hydra's ConfigStore."""
+"""The validation layer: structured-config schemas of the root keys and groups (:mod:`.core`) and of
+every task (one module each, built with :mod:`.base`). Importing this package registers them all
+in Hydra's ConfigStore; :func:`validate_config` checks a composed configuration before any work."""
 
 import importlib
 
 from dslearn.schemas.base import TASKS, check_ranges, ranged, register_task, validate_task
+from dslearn.schemas.core import validate_config  # the root and Yu group schemas; the whole check
 
 #: the modules that register a task schema (one per study)
 TASK_MODULES = ("yu", "yu_faults", "liu_dgpt", "jiang_fg", "braga_tbn", "ethucy_forecast", "ethucy_tracking")
@@ -15,4 +17,4 @@ for _m in TASK_MODULES:
         if _e.name != f"dslearn.schemas.{_m}":
             raise
 
-__all__ = ["TASKS", "TASK_MODULES", "check_ranges", "ranged", "register_task", "validate_task"]
+__all__ = ["TASKS", "TASK_MODULES", "check_ranges", "ranged", "register_task", "validate_config", "validate_task"]

@@ -1,6 +1,6 @@
 """Schema of ``task=yu`` (the synthetic study). The task block names only the entry; the study's
 parts are the root groups (scenario, network, model, observation, consensus, data, filter),
-whose schemas and ranges are in :mod:`dslearn.config_schema`."""
+whose schemas and ranges are in :mod:`dslearn.schemas.core`."""
 
 from __future__ import annotations
 

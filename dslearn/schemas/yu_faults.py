@@ -36,7 +36,7 @@ class FaultTask:
 
 
 def check(cfg: DictConfig) -> None:
-    from dslearn.config_schema import CONF_DIRS
+    from dslearn.conf_paths import CONF_DIRS
 
     t = cfg.task
     for m in t.models:

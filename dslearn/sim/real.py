@@ -13,13 +13,19 @@ A sensor measures a pedestrian only within ``sensing_range``: ``z = p + ν``, ``
 from __future__ import annotations
 
 import math
+import warnings
+from dataclasses import dataclass
 from typing import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from dslearn.data.episodes import extract_episodes, split_episodes
 from dslearn.errors import ConfigError, check_positive
 from dslearn.sim.network import SensorNetwork, make_network
+from dslearn.sim.scenario import Episodes, episode_streams, measure
+from dslearn.types import StepContext
 
 
 def scene_extent(xy: Tensor) -> tuple[float, float, float, float]:
@@ -84,3 +90,79 @@ def arena_network(
     except ConfigError as e:
         msg = str(e).replace("network.", "task.network.")
         raise ConfigError(msg + "; raise task.network.k_nearest" if "disconnected" in msg else msg) from None
+
+
+@dataclass
+class Data:
+    """One data source prepared for the protocol.
+
+    ``train`` holds the training pool in the order online learning sees it; ``test`` the test
+    episodes. ``train_fused`` (filled later) are the CM-fused estimates of ``train``.
+    """
+
+    label: str  # scene name or "synthetic"
+    kind: str  # "real" | "synthetic"
+    train: Episodes
+    test: Episodes
+    network: SensorNetwork
+    ctx: StepContext
+    area: tuple[float, float, float, float]  # (xmin, xmax, ymin, ymax): where the diffuse prior puts the targets
+    num_agents: int
+    info: dict
+
+
+def episodes_to(ep: Episodes, dtype, device) -> Episodes:
+    return Episodes(ep.states.to(device, dtype), ep.meas.to(device, dtype), ep.visible.to(device))
+
+
+def real_source(scene, t, seed: int, max_train: int, dtype, device) -> Data:
+    """Episodes of ``m = t.agents`` interacting pedestrians of ``scene`` (a
+    :class:`dslearn.data.ethucy.Scene`; :func:`dslearn.data.episodes.extract_episodes` with the
+    task's ``steps dt max_dist stride criterion min_speed``), split by ``t.split`` (at most
+    ``max_train`` training and ``t.test_episodes`` test episodes, seeded), the network of
+    ``t.network`` around the scene's extent and every episode's measurements (one noise stream
+    per episode)."""
+    scene_name = scene.name
+    eps = extract_episodes(
+        scene, int(t.agents), int(t.steps), float(t.dt), float(t.max_dist), int(t.stride), str(t.criterion), float(t.min_speed)
+    )
+    train_idx, test_idx = split_episodes(eps, str(t.split), float(t.test_fraction), None, seed)
+    n_tr, n_te = min(max_train, len(train_idx)), min(int(t.test_episodes), len(test_idx))
+    if n_tr < 1 or n_te < 1:
+        raise ConfigError(
+            f"task.scenes: scene {scene_name!r} gives {len(train_idx)} training and {len(test_idx)} test episodes "
+            f"with these settings; lower task.max_dist/task.min_speed/task.stride or choose another scene"
+        )
+    if n_tr < max_train or n_te < int(t.test_episodes):
+        warnings.warn(
+            f"scene {scene_name}: only {len(train_idx)} training / {len(test_idx)} test episodes available "
+            f"(asked {max_train} / {int(t.test_episodes)}); using {n_tr} / {n_te}"
+        )
+    rng = np.random.default_rng(seed + 17)
+    test_sel = np.sort(rng.choice(test_idx, size=n_te, replace=False)) if n_te < len(test_idx) else test_idx
+    tr, te = eps.select(train_idx[:n_tr]), eps.select(test_sel)
+    net = arena_network(
+        scene_extent(torch.tensor(scene.df[["x", "y"]].to_numpy())),
+        int(t.network.num_sensors),
+        int(t.network.k_nearest),
+        float(t.network.sensing_range),
+        float(t.network.meas_std),
+        float(t.network.margin),
+    )
+    # one measurement-noise stream per episode: an episode's measurements do not depend on how
+    # many episodes are drawn
+    test = measure(te.states, net, episode_streams(int(seed), "test", 0, len(te.states)))
+    train = measure(tr.states, net, episode_streams(int(seed), "train", 0, len(tr.states)))
+    ext = tuple(float(v) for v in scene_extent(torch.tensor(scene.df[["x", "y"]].to_numpy())))
+    info = {
+        "episodes_total": len(eps),
+        "train_pool": len(train_idx),
+        "test_pool": len(test_idx),
+        "scene_dt": scene.dt,
+        "test_meta": te.meta,
+        "visible_frac": float(test.visible[: net.num_sensors].any(0).float().mean()),
+    }
+    return Data(
+        scene_name, "real", episodes_to(train, dtype, device), episodes_to(test, dtype, device), net,
+        StepContext(dt=float(t.dt)), ext, int(t.agents), info,
+    )

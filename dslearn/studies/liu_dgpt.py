@@ -20,8 +20,8 @@ import time
 import numpy as np
 import pandas as pd
 import torch
-from hydra.utils import instantiate
 
+from dslearn.compose import build
 from dslearn.filters.dgpt import HyperConfig, hyper_summary, track
 from dslearn.schemas.base import to_plain
 from dslearn.schemas.liu_dgpt import selected_scenario
@@ -48,7 +48,7 @@ def plan(cfg) -> dict:
                            "centralised", "torch_threads")}
     p.update(scenarios=scenarios, noises=noises, aggregations=[str(a) for a in t.aggregations], trace=trace,
              window={s: int(t.window[s]) for s in scenarios}, hyper=HyperConfig(**to_plain(t.hyper)),
-             generators={s: instantiate(t.scenario_params[s], _convert_="all") for s in scenarios})
+             generators={s: build(t.scenario_params[s], f"task.scenario_params.{s}") for s in scenarios})
     return p
 
 

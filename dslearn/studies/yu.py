@@ -26,7 +26,6 @@ from dslearn.learning.online import OnlineLearner
 from dslearn.metrics import metric_rows, prediction_error, tracking_metrics
 from dslearn.progress import evaluation_bar, training_bar
 from dslearn.sim.scenario import sample_split
-from dslearn.types import JITTER
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +40,9 @@ class YuStudy:
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> "YuStudy":
-        from dslearn.config_schema import validate_config
+        from dslearn.schemas.core import validate_config
 
-        validate_config(cfg)  # keys, types and ranges (dslearn.config_schema, dslearn.schemas)
+        validate_config(cfg)  # keys, types and ranges (dslearn.schemas.core, dslearn.schemas)
         study = cls(cfg)
         study.build()  # then what needs the built parts: shapes and connectivity
         return study
@@ -53,7 +52,8 @@ class YuStudy:
         """Compose the default configuration (``conf/``) with a few options, without Hydra's app."""
         from hydra import compose, initialize_config_dir
 
-        from dslearn.config_schema import CONF_DIR
+        import dslearn.schemas  # noqa: F401  (the task schemas the configs name)
+        from dslearn.conf_paths import CONF_DIR
 
         ov = [f"model={model}", f"consensus={consensus}"]
         for k, v in overrides.items():
@@ -98,7 +98,6 @@ class YuStudy:
         learnable = learner.learnable
         checkpoints = self.checkpoints() if learnable else [int(c.data.train_episodes)]
         t0 = time.perf_counter()
-        jitter0 = JITTER.count
         bar = training_bar(max(checkpoints), scenario.steps, c.model, enable=progress and learnable, desc=f"train {c.model.name}/{fusion.name}")
         tbar = evaluation_bar(checkpoints, scenario.steps, c.model, enable=progress, learnable=learnable, desc="test", position=1)
 
@@ -127,7 +126,6 @@ class YuStudy:
         diag.count("train_episodes_seen", learner.seen)
         bar.close()
         tbar.close()
-        df.attrs["jitter_events"] = JITTER.count - jitter0
         self.model, self.network, self.fusion = model, network, fusion
         return df
 

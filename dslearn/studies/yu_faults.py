@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from dslearn.compose import build_fusion, build_motion_model, build_network, build_observation, build_predict
 from dslearn.compose import build_scenario, group_options, resolve_device, resolve_dtype
 from dslearn.filters.distributed import initial_belief
-from dslearn.filters.information import GATE_STATS
+from dslearn.diagnostics import Diagnostics
 from dslearn.fusion.faults import FaultyFusion, add_outliers, apply_node_failures, node_failure_schedule
 from dslearn.learning.online import OnlineLearner
 from dslearn.metrics import tracking_metrics
@@ -129,8 +129,6 @@ def _cell(cfg, st, si, scenario, network, ctx, mcfg, fname, fcfg, faulty, dtype,
         init=lambda ep: initial_belief(ep, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std),
         predict_step=build_predict(cfg), learn_gate_std=cfg.filter.get("learn_gate_std"), gate_prob=st["gate_prob"],
     )
-    g0 = dict(GATE_STATS)
-
     def evaluate(_seen: int):
         fusion.begin(alive_te, episodes=list(range(alive_te.shape[1])), split="test")
         return learner.estimate(test.measurements)
@@ -138,12 +136,14 @@ def _cell(cfg, st, si, scenario, network, ctx, mcfg, fname, fcfg, faulty, dtype,
     def before(i: int) -> None:
         fusion.begin(alive_tr[:, i : i + 1], episodes=[i], split="train")
 
-    if model.learnable:
-        learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame(), before=before)
-    return _cell_rows(cfg, st, mcfg, fname, fusion, evaluate(len(train)), test, alive_te, g0)
+    with Diagnostics() as cell:  # this cell's gating counts (the run's diagnostics get them too)
+        if model.learnable:
+            learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame(), before=before)
+        res = evaluate(len(train))
+    return _cell_rows(cfg, st, mcfg, fname, fusion, res, test, alive_te, cell)
 
 
-def _cell_rows(cfg, st, mcfg, fname, fusion, res, test, alive_te, g0) -> pd.DataFrame:
+def _cell_rows(cfg, st, mcfg, fname, fusion, res, test, alive_te, cell: Diagnostics) -> pd.DataFrame:
     t = cfg.task
     m = tracking_metrics(res, test.states)  # (S, B) each
     finite = torch.isfinite(res.mean).all(-1).all(-1)  # (S, B)
@@ -162,8 +162,7 @@ def _cell_rows(cfg, st, mcfg, fname, fusion, res, test, alive_te, g0) -> pd.Data
                               "value": (~finite).sum(0).double().cpu().numpy()}))
     links = fusion.live_links / fusion.nominal_links if fusion.nominal_links else float("nan")
     rows.append(pd.DataFrame({"node": "all", "episode": [0], "metric": "live_link_frac", "value": [links]}))
-    tested = GATE_STATS["tested"] - g0["tested"]
-    rej = GATE_STATS["rejected"] - g0["rejected"]
+    tested, rej = cell.gate_tested, cell.gate_rejected
     rows.append(pd.DataFrame({"node": "all", "episode": [0], "metric": "gate_reject_frac",
                               "value": [rej / tested if tested else 0.0]}))
     df = pd.concat(rows, ignore_index=True)

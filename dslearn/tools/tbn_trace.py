@@ -25,7 +25,7 @@ def compose_cfg(overrides: list[str] = ()) -> DictConfig:
     import dslearn.schemas  # noqa: F401  (registers the task schemas)
     from hydra import compose, initialize_config_dir
 
-    from dslearn.config_schema import CONF_DIR, validate_config
+    from dslearn.schemas.core import CONF_DIR, validate_config
     from dslearn.schemas import validate_task
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):

@@ -41,18 +41,9 @@ from dslearn.errors import ConfigError, check_finite, check_choice, check_positi
 
 
 
-def _conf_dir() -> Path:
-    """The packaged Hydra configs (``dslearn.conf``; in a source checkout, the top-level ``conf/``)."""
-    from importlib.resources import files
+from dslearn.conf_paths import CONF_DIR, CONF_DIRS  # noqa: E402,F401  (re-exported)
+from dslearn.schemas.base import validate_task  # noqa: E402
 
-    return Path(str(files("dslearn.conf")))
-
-
-#: the packaged config folder; user config folders join it through ``hydra.searchpath``
-CONF_DIR = _conf_dir()
-#: every config folder the current command composes from: CONF_DIR, then the user's ``hydra.searchpath``
-#: folders (``dslearn-run`` extends this list from the command line before its up-front checks)
-CONF_DIRS: list[Path] = [CONF_DIR]
 CORE_TASKS = ("yu", "yu_faults")
 
 #: the registry of study entries: ``task.name`` -> ``task.entry``. ``dslearn-run`` calls only
@@ -561,5 +552,3 @@ def _check_pairs(name: str, value, kind) -> None:
                     or (kind is int and float(x) != int(x)):
                 raise ConfigError(f"{name}[{i}]={list(v)!r} must hold two finite {'integers' if kind is int else 'numbers'}")
 
-
-from dslearn.schemas import validate_task  # noqa: E402  (last: registers every task schema, which may need CONF_DIR)

@@ -171,7 +171,7 @@ def fig_trajectories(results: pd.DataFrame, out: Path, max_episodes: int = 3) ->
 
 def real_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     """Write the tables (``.md`` + ``.csv``) and figures into ``out_dir``; return the Markdown."""
-    from dslearn.report import markdown
+    from dslearn.reports.tables import markdown
 
     out_dir = Path(out_dir)
     parts = []
@@ -205,3 +205,14 @@ def real_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> 
     if fig is not None:
         parts.append(f"Figure: {fig.name}")
     return "\n\n".join(parts)
+
+
+def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
+    """Tables III–IV analogue (Markdown + CSV), Fig. 4 and Fig. 5 analogues (PNG); the data sets
+    are shown by their labels (``task.datasets.<name>.label`` in the runs' ``config.yaml``)."""
+    from dslearn.data.datasets import run_labels
+
+    labels = run_labels(out_dir)
+    if "scene" in results.columns:
+        results = results.assign(scene=results["scene"].map(lambda s: labels.get(s, s) if isinstance(s, str) else s))
+    return real_report(results, summary, out_dir)

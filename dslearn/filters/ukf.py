@@ -1,0 +1,200 @@
+r"""Unscented prediction step (GP-UKF) for the information filter.
+
+A drop-in alternative to :func:`dslearn.filters.information.predict`: same arguments, same
+return tuple, so :func:`dslearn.filters.distributed.track` can run it at every node. Instead of
+linearising the motion model at the prior mean (EKF), the prior :math:`\mathcal N(\hat y, P)`,
+:math:`P = \Omega^{-1}`, is represented by :math:`2D_x + 1` sigma points (scaled unscented
+transform, Julier 2002; Wan & van der Merwe 2000), pushed through the model and re-summarised:
+
+.. math::
+    \lambda = \alpha^2 (D_x + \kappa) - D_x,\quad
+    \chi_0 = \hat y,\quad \chi_{\pm i} = \hat y \pm \sqrt{D_x + \lambda}\, L_{:,i},\quad L L^T = P,
+
+    w^m_0 = \frac{\lambda}{D_x + \lambda},\quad w^c_0 = w^m_0 + 1 - \alpha^2 + \beta,\quad
+    w^m_{\pm i} = w^c_{\pm i} = \frac{1}{2 (D_x + \lambda)},
+
+    \hat y^{t|t-1} = \sum_k w^m_k f(\chi_k),\quad
+    P^{t|t-1} = \sum_k w^c_k (f(\chi_k) - \hat y^{t|t-1})(f(\chi_k) - \hat y^{t|t-1})^T + Q(\hat y).
+
+The process noise :math:`Q` is the model's :meth:`~dslearn.models.base.MotionModel.noise_cov` at
+the prior mean, not an average over the sigma points: for a GP motion model this is its latent
+variance at the mean, the process noise of the GP-UKF (Ko & Fox 2009), and it is the same
+:math:`Q` the EKF step uses, so the two steps differ only in how the mean is propagated.
+
+With ``full=True`` the step also returns the statistical linearisation
+:math:`F = P_{xy}^T P^{-1}`, :math:`P_{xy} = \sum_k w^c_k (\chi_k - \hat y)(f(\chi_k) - \hat y^{t|t-1})^T`
+(the regression matrix of the propagated on the prior sigma points; the model's matrix for a
+linear model), which is what the RTS smoother behind the process-noise EM step needs
+(:func:`dslearn.filters.smoother.transition_error_moments`: :math:`F P = P_{xy}^T` is the
+unscented RTS cross-covariance).
+
+Shapes follow :mod:`dslearn.filters.information`: nodes first, ``(S, B, Dx)``, ``(S, B, Dx, Dx)``.
+Nothing here disables autograd: the step is differentiable wherever the model is.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+
+from dslearn.errors import ConfigError, check_finite, check_positive
+from dslearn.models.base import MotionModel
+from dslearn.types import StepContext, safe_cholesky, spd_inverse, symmetrize
+
+
+def check_unscented(alpha: float, beta: float, kappa: float, state_dim: int | None = None) -> None:
+    r"""Raise :class:`~dslearn.errors.ConfigError` unless :math:`\alpha > 0`, :math:`\beta \ge 0`,
+    :math:`\kappa` finite and, when ``state_dim`` is given, :math:`D_x + \lambda = \alpha^2 (D_x + \kappa) > 0`
+    (i.e. :math:`\kappa > -D_x`)."""
+    check_positive("filter.alpha", alpha)
+    check_positive("filter.beta", beta, strict=False)
+    check_finite("filter.kappa", kappa)
+    if state_dim is not None and not float(state_dim) + float(kappa) > 0:
+        raise ConfigError(
+            f"filter.kappa={kappa!r} with state dimension Dx={state_dim} gives Dx + lambda = "
+            f"alpha^2 (Dx + kappa) = {float(alpha) ** 2 * (state_dim + float(kappa)):g}; it must be > 0: "
+            f"use filter.kappa > {-state_dim}"
+        )
+
+
+def unscented_weights(
+    state_dim: int, alpha: float, beta: float, kappa: float, dtype=torch.float64, device=None
+) -> tuple[Tensor, Tensor, float]:
+    """Mean and covariance weights ``(2 Dx + 1,)`` (centre point first) and the scale
+    :math:`D_x + \\lambda` of the sigma-point offsets."""
+    check_unscented(alpha, beta, kappa, state_dim)
+    n = int(state_dim)
+    c = float(alpha) ** 2 * (n + float(kappa))  # Dx + lambda
+    lam = c - n
+    wm = torch.full((2 * n + 1,), 0.5 / c, dtype=dtype, device=device)
+    wm[0] = lam / c
+    wc = wm.clone()
+    wc[0] = wc[0] + 1.0 - float(alpha) ** 2 + float(beta)
+    return wm, wc, c
+
+
+def _sigma_points(mean: Tensor, cov: Tensor, alpha: float, beta: float, kappa: float):
+    """:func:`sigma_points` plus the Cholesky factor used (for the statistical linearisation)."""
+    n = mean.shape[-1]
+    wm, wc, c = unscented_weights(n, alpha, beta, kappa, mean.dtype, mean.device)
+    L = safe_cholesky(cov)  # jitter (counted in dslearn.types.JITTER) where cov is near-singular
+    off = math.sqrt(c) * L.transpose(-1, -2)  # row i = sqrt(Dx + lambda) L[:, i]
+    m = mean.unsqueeze(-2)
+    return torch.cat([m, m + off, m - off], dim=-2), wm, wc, L
+
+
+def sigma_points(mean: Tensor, cov: Tensor, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0):
+    r"""Scaled unscented sigma points of :math:`\mathcal N(\text{mean}, \text{cov})`.
+
+    Args:
+        mean: ``(*B, Dx)`` (for a network ``(S, B, Dx)``); cov: ``(*B, Dx, Dx)``.
+        alpha, beta, kappa: spread, prior-knowledge and secondary scaling parameters
+            (:math:`\alpha > 0`, :math:`\beta \ge 0`, :math:`\kappa > -D_x`).
+    Returns:
+        ``points (*B, 2Dx+1, Dx)`` (centre, then :math:`+` and :math:`-` offsets along the columns
+        of the Cholesky factor), mean weights ``(2Dx+1,)``, covariance weights ``(2Dx+1,)``.
+        The points reproduce ``mean`` and ``cov`` exactly:
+        :math:`\sum_k w^m_k \chi_k = \text{mean}`, :math:`\sum_k w^c_k (\chi_k - \text{mean})(\cdot)^T = \text{cov}`
+        (plus the jitter :func:`~dslearn.types.safe_cholesky` added to a near-singular ``cov``).
+    """
+    pts, wm, wc, _ = _sigma_points(mean, cov, alpha, beta, kappa)
+    return pts, wm, wc
+
+
+def _per_node(model: MotionModel) -> bool:
+    """Whether the model keeps per-node state and so needs the node dimension first (the GP
+    models: learnable, with ``num_nodes``); the rest broadcast over any leading dimensions."""
+    return bool(getattr(model, "learnable", False)) or hasattr(type(model), "num_nodes")
+
+
+def _propagate(model: MotionModel, pts: Tensor, cov: Tensor, ctx: StepContext) -> Tensor:
+    r"""``f`` at every sigma point: ``pts (*B, K, Dx) -> (*B, K, Dx)``, ``cov (*B, Dx, Dx)`` the prior.
+
+    Per-node models (GP) get ``(S, prod(B[1:]) K, Dx)``: the node dimension stays first, every
+    sigma point of node ``i`` is a query of node ``i``'s model; ``ctx.cov`` is repeated per sigma
+    point to match. Parametric models get the sigma dimension first, ``(K, *B, Dx)``, so that
+    what broadcasts against the belief's batch ``(*B, ...)`` still does: ``ctx.cov (*B, Dx, Dx)``
+    (the social force's uncertainty softening reads its diagonal, ``(*B, A)``) and per-episode
+    parameters such as the social force's desired velocities ``(B, A, 2)``.
+    """
+    k, dx = pts.shape[-2], pts.shape[-1]
+    batch = pts.shape[:-2]
+    if _per_node(model):
+        s = batch[0]
+        x = pts.reshape(s, -1, dx)
+        c = cov.unsqueeze(-3).expand(*batch, k, dx, dx).reshape(s, -1, dx, dx)
+        out = model(x, dataclasses.replace(ctx, cov=c))
+        return out.reshape(*batch, k, out.shape[-1])
+    out = model(pts.movedim(-2, 0), dataclasses.replace(ctx, cov=cov))
+    return out.movedim(0, -2)
+
+
+def ukf_predict(
+    mean: Tensor,
+    omega: Tensor,
+    model: MotionModel,
+    ctx: StepContext,
+    full: bool = False,
+    alpha: float = 1.0,
+    beta: float = 2.0,
+    kappa: float = 0.0,
+) -> tuple[Tensor, ...]:
+    r"""Unscented prediction of an information-form belief (see the module docstring).
+
+    Args:
+        mean: ``(S, B, Dx)`` prior means; omega: ``(S, B, Dx, Dx)`` prior information.
+        model: any :class:`~dslearn.models.base.MotionModel` (called as ``model(x, ctx)`` at the
+            sigma points with ``ctx.cov`` the prior covariance, and ``model.noise_cov`` at the mean).
+        alpha, beta, kappa: unscented parameters (defaults 1, 2, 0: :math:`\lambda = 0`, the
+            centre point carries no mean weight and the points sit at :math:`\pm\sqrt{D_x}` standard
+            deviations).
+    Returns:
+        ``(y_pred (S,B,Dx), q_pred (S,B,Dx), omega_pred (S,B,Dx,Dx))`` and with ``full`` also
+        ``P_pred``, the statistical linearisation ``F`` and the process noise ``Q`` (all
+        ``(S,B,Dx,Dx)``), as :func:`dslearn.filters.information.predict`.
+    """
+    check_unscented(alpha, beta, kappa, mean.shape[-1])
+    P = spd_inverse(omega)
+    pts, wm, wc, L = _sigma_points(mean, P, alpha, beta, kappa)
+    gam = _propagate(model, pts, P, ctx)  # (S, B, K, Dx)
+    y_pred = torch.einsum("k,...kd->...d", wm, gam)
+    dy = gam - y_pred.unsqueeze(-2)
+    # Q at the prior mean, called last: a GP keeps the solve of this single query for the
+    # data-set update that follows in track() (OnlineGP.append reuses it)
+    Q = model.noise_cov(mean, dataclasses.replace(ctx, cov=P)).to(mean.dtype)
+    P_pred = symmetrize(dy.transpose(-1, -2) @ (wc.unsqueeze(-1) * dy) + Q)
+    omega_pred = spd_inverse(P_pred)
+    q_pred = (omega_pred @ y_pred.unsqueeze(-1)).squeeze(-1)
+    if not full:
+        return y_pred, q_pred, omega_pred
+    dx = pts - mean.unsqueeze(-2)
+    P_xy = dx.transpose(-1, -2) @ (wc.unsqueeze(-1) * dy)  # (S, B, Dx, Dx); the centre has dx = 0
+    F = torch.cholesky_solve(P_xy, L).transpose(-1, -2)  # P_xy^T P^{-1}, P = L L^T as sampled
+    return y_pred, q_pred, omega_pred, P_pred, F, Q
+
+
+@dataclass(frozen=True)
+class UnscentedPredict:
+    """:func:`ukf_predict` with fixed parameters, callable like
+    :func:`dslearn.filters.information.predict` (``(mean, omega, model, ctx, full=False)``).
+
+    Raises :class:`~dslearn.errors.ConfigError` on construction for ``alpha <= 0``, ``beta < 0``
+    or a non-finite ``kappa`` (fields ``filter.alpha`` / ``filter.beta`` / ``filter.kappa``), and on
+    the first call whose state dimension ``Dx`` has ``Dx + kappa <= 0``, before any model call.
+    """
+
+    alpha: float = 1.0
+    beta: float = 2.0
+    kappa: float = 0.0
+    name: ClassVar[str] = "ukf"
+
+    def __post_init__(self) -> None:
+        check_unscented(self.alpha, self.beta, self.kappa)
+
+    def __call__(self, mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext, full: bool = False):
+        return ukf_predict(mean, omega, model, ctx, full, self.alpha, self.beta, self.kappa)

@@ -1,0 +1,121 @@
+r"""Fitting the social force model to trajectories (real pedestrians, where the true model is unknown).
+
+The model is the ONE :class:`dslearn.models.social_force.SocialForce` (bounded interactions
+included) with shared :math:`(\tau, \alpha, \beta)`; each episode's desired velocities
+:math:`v_j^*` are the agents' mean velocity over the first ``desired_steps`` states
+(:func:`desired_velocity`; default 1: the velocity in the t = 0 state, the information LIN gets).
+:func:`fit_social_force` minimises the mean position error of its roll-outs from each episode's
+state at t = 0 (the prediction protocol): grid search, then Adam on
+:math:`(\log\tau, \alpha \ge 0, \log\beta)`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from dslearn.models.social_force import SocialForce
+from dslearn.types import POS, VEL, StepContext, agents
+
+
+def episode_social_force(num_agents: int, tau: float = 1.0, alpha: float = 0.0, beta: float = 1.0,
+                         noise_std: float = 0.1) -> SocialForce:
+    r"""The social force model of :mod:`dslearn.models.social_force` (the same code, bounded
+    interactions included) with shared :math:`(\tau, \alpha, \beta)`; each episode's desired
+    velocities are set with :meth:`~dslearn.models.social_force.SocialForce.set_desired`
+    ``(B, A, 2)`` before tracking or rolling out a batch of episodes."""
+    return SocialForce([[0.0, 0.0]] * int(num_agents), tau, alpha, beta, noise_std)
+
+
+def desired_velocity(states: Tensor, desired_steps: int = 1) -> Tensor:
+    """Each agent's mean velocity over the first ``desired_steps`` states: ``(B, K+1, 4A) -> (B, A, 2)``."""
+    return agents(states[:, :desired_steps])[..., VEL].mean(1)
+
+
+def _rollout_error(model: SocialForce, states: Tensor, ctx: StepContext) -> Tensor:
+    """Mean position error of the roll-out from ``states[:, 0]`` (differentiable)."""
+    x = states[:, 0]
+    errs = []
+    for t in range(1, states.shape[1]):
+        x = model(x, ctx)
+        errs.append((agents(x)[..., POS] - agents(states[:, t])[..., POS]).norm(dim=-1))
+    return torch.stack(errs).mean()
+
+
+def fit_social_force(
+    states: Tensor,
+    dt: float,
+    desired_steps: int = 1,
+    tau_grid=(0.25, 0.5, 1.0, 2.0, 4.0, 8.0),
+    alpha_grid=(0.0, 0.5, 1.0, 2.0, 4.0, 8.0),
+    beta_grid=(0.25, 0.5, 1.0, 2.0, 4.0),
+    refine_iters: int = 150,
+    refine_lr: float = 0.05,
+) -> tuple[dict[str, float], float]:
+    r"""Fit shared SFM parameters to trajectories by roll-out error.
+
+    Objective: mean over episodes, steps t = 1..K and agents of
+    :math:`\|\hat x_j^t - x_j^t\|` where :math:`\hat x` is the SFM roll-out from the state at
+    t = 0 with :math:`v_j^*` = :func:`desired_velocity`. Grid search over
+    ``tau_grid x alpha_grid x beta_grid`` (only :math:`\tau \ge \Delta t`: a shorter relaxation
+    time makes the Euler step overshoot; largest :math:`\tau` first, so where the error does not
+    depend on :math:`\tau` the weakest relaxation is kept), then ``refine_iters`` Adam steps on
+    :math:`(\log\tau, \alpha, \log\beta)` from the best grid point (:math:`\alpha` projected to
+    :math:`\ge 0`, :math:`\tau \ge \Delta t`); the better of the two is returned.
+
+    Args:
+        states: ``(B, K+1, 4A)`` trajectories (truth or fused estimates).
+    Returns:
+        ``({"tau", "alpha", "beta"}, objective)``.
+    """
+    states = states.detach().to(torch.float64)
+    a = states.shape[-1] // 4
+    ctx = StepContext(dt=float(dt))
+    model = episode_social_force(a).set_desired(desired_velocity(states, desired_steps))
+    best, best_loss = None, math.inf
+    taus = sorted((float(v) for v in tau_grid if float(v) >= dt - 1e-12), reverse=True) or [float(dt)]
+    with torch.no_grad():
+        for tau in taus:  # largest first: where the error does not depend on tau, keep the weakest relaxation
+            for alpha in alpha_grid:
+                for beta in beta_grid:
+                    model.set_parameters(float(tau), float(alpha), float(beta))
+                    loss = float(_rollout_error(model, states, ctx))
+                    if loss < best_loss:
+                        best, best_loss = (float(tau), float(alpha), float(beta)), loss
+    log_tau = torch.tensor(math.log(best[0]), dtype=torch.float64, requires_grad=True)
+    alpha = torch.tensor(best[1], dtype=torch.float64, requires_grad=True)
+    log_beta = torch.tensor(math.log(best[2]), dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([log_tau, alpha, log_beta], lr=refine_lr)
+    for _ in range(int(refine_iters)):
+        opt.zero_grad()
+        model.set_parameters(log_tau.exp(), alpha, log_beta.exp())
+        loss = _rollout_error(model, states, ctx)
+        if not torch.isfinite(loss):
+            break
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            alpha.clamp_(min=0.0)
+            log_tau.clamp_(math.log(dt), math.log(1e3))
+            log_beta.clamp_(math.log(1e-2), math.log(1e2))
+    with torch.no_grad():
+        model.set_parameters(log_tau.exp(), alpha.detach(), log_beta.exp())
+        refined = float(_rollout_error(model, states, ctx))
+    if math.isfinite(refined) and refined < best_loss:
+        best, best_loss = (float(log_tau.detach().exp()), float(alpha.detach()), float(log_beta.detach().exp())), refined
+    return {"tau": best[0], "alpha": best[1], "beta": best[2]}, best_loss
+
+
+def fit_episode_social_force(train_states: Tensor, test_states: Tensor, dt: float, c) -> tuple[SocialForce, dict, float]:
+    """Fit on ``train_states`` (truth or fused estimates) with the settings of ``c`` (``task.sfm``:
+    ``desired_steps grid.{tau,alpha,beta} refine_iters refine_lr noise_std``) and return the model
+    with the test episodes' desired velocities set, the parameters and the objective."""
+    params, loss = fit_social_force(
+        train_states, dt, int(c.desired_steps), tuple(c.grid.tau), tuple(c.grid.alpha), tuple(c.grid.beta),
+        int(c.refine_iters), float(c.refine_lr),
+    )
+    model = episode_social_force(test_states.shape[-1] // 4, noise_std=float(c.noise_std), **params)
+    model.set_desired(desired_velocity(test_states, int(c.desired_steps)))
+    return model, params, loss
