@@ -149,9 +149,7 @@ def _make_gp(variant: str, nodes: int, n: int, dim: int, extra: int, gen, dtype=
         else:
             gp = WindowGP(nodes, dim, dim, window=1000, **hyp)
             keep = min(n, 1000)
-        gp.X[:, :keep], gp.R[:, :keep], gp.mask[:, :keep] = X[:, n - keep :], Y[:, n - keep :], True
-        gp.n = keep
-        gp.refactorize()
+        gp.set_data(X[:, n - keep :], Y[:, n - keep :], residual=True, capacity=n + extra + 1 if variant == "exact" else gp.X.shape[1])
         if variant == "window":
             gp.seen = n
         return gp
@@ -177,7 +175,7 @@ def item_gp(variant: str, n: int, nodes: int = 1, dim: int = 8, steps: int = 20,
                ms_per_step=1e3 * step, ms_per_node_step=1e3 * step / nodes, build_s=build, peak_mb=_peak_mb())
     if variant == "exact" and ref_steps > 0:
         # reference: kernel matrix + Cholesky from scratch at every step (what a refit does)
-        Xr, Yr = gp.X[:, : gp.n].clone(), gp.R[:, : gp.n].clone()
+        Xr, Yr = (t.clone() for t in gp.data()[:2])
         eye = torch.eye(Xr.shape[1], dtype=torch.float64)
         t0 = time.perf_counter()
         for i in range(ref_steps):

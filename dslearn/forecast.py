@@ -33,15 +33,7 @@ def constant_velocity(obs: Tensor, pred_len: int) -> Tensor:
 
 def load_gp_data(gp: OnlineGP, x: Tensor, y: Tensor) -> None:
     """Replace the GP's data with ``x (n, Dx) -> y (n, Dy)`` in one factorisation (node 0)."""
-    n = x.shape[0]
-    gp.reset()
-    gp._alloc(n)
-    xs = x.to(gp.X).unsqueeze(0)
-    gp.X[:, :n] = xs
-    gp.R[:, :n] = y.to(gp.X).unsqueeze(0) - gp.prior_mean(xs)
-    gp.mask[:, :n] = True
-    gp.n = n
-    gp.refactorize()
+    gp.set_data(x.unsqueeze(0), y.unsqueeze(0))
 
 
 def fit_gp(gp: OnlineGP, x: Tensor, y: Tensor, c, gen: torch.Generator) -> dict:
@@ -79,9 +71,8 @@ def gp_mean(gp: OnlineGP, x: Tensor) -> Tensor:
     squared distances, which is several times faster for the ~10^4 queries x 2000 points
     of a forecasting fold. All stored points must be valid (as :func:`load_gp_data` makes them).
     """
-    n = gp.n
     ls, os_ = gp.lengthscale[0].to(x), gp.outputscale[0].to(x)
-    a, b = x / ls, gp.X[0, :n].to(x) / ls
+    a, b = x / ls, gp.data()[0][0].to(x) / ls
     d2 = ((a * a).sum(-1, keepdim=True) + (b * b).sum(-1) - 2.0 * a @ b.T).clamp_min(0.0)
     return gp.prior_mean(x.unsqueeze(0))[0] + (os_ * torch.exp(-0.5 * d2)) @ gp.alpha[0].to(x)
 

@@ -889,7 +889,7 @@ def help_text(width: int = 100) -> str:
     for p in sorted((conf / "experiment").glob("*.yaml")):
         out.append(line(p.stem, _first_comment(p), 2))
     out += ["", "config groups (group=option; * = default):"]
-    for g in sorted(d.name for d in conf.iterdir() if d.is_dir() and d.name != "experiment"):
+    for g in sorted(d.name for d in conf.iterdir() if d.is_dir() and d.name != "experiment" and not d.name.startswith("_")):
         out.append(f"  {g}:")
         for p in sorted((conf / g).glob("*.yaml")):
             mark = "*" if defaults.get(g) == p.stem else " "

@@ -184,7 +184,8 @@ class GPMotionModel(MotionModel):
             if hasattr(gp, "differentiable_mean"):  # the scalable variants
                 mean = gp.differentiable_mean(xf)
             elif n > 0:
-                ks = gp.covar_module(gp.X[:, :n], xf).to_dense() * gp.mask[:, :n].unsqueeze(-1)
+                X, _, valid = gp.data()
+                ks = gp.covar_module(X, xf).to_dense() * valid.unsqueeze(-1)
                 mean = mean + torch.einsum("snk,sno->sko", ks, gp.alpha)
             rows = [torch.autograd.grad(mean[..., o].sum(), xf, retain_graph=True)[0] for o in range(self.state_dim)]
         return torch.stack(rows, -2).reshape(*x.shape, self.state_dim).detach()

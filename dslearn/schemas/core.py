@@ -275,7 +275,7 @@ def _check_schema(node: Any, schema: type, prefix: str) -> DictConfig:
 
 
 def known_root_keys() -> set[str]:
-    groups = {p.name for d in CONF_DIRS if d.is_dir() for p in d.iterdir() if p.is_dir()}
+    groups = {p.name for d in CONF_DIRS if d.is_dir() for p in d.iterdir() if p.is_dir() and not p.name.startswith("_")}
     return {f.name for f in fields(RootSchema)} | {"task", "hydra", "noise"} | groups | set(GROUP_SCHEMAS)
 
 
