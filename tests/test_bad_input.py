@@ -476,9 +476,12 @@ def test_cli_exit_code_2_one_line(tmp_path):
 
 def test_cli_ctrl_c_exit_130_status_interrupted(tmp_path):
     run = tmp_path / "run"
+    # the child gets SIGINT's default disposition whatever the test runner inherited (a runner
+    # started in the background has SIGINT ignored, and Python then installs no Ctrl-C handler)
     p = subprocess.Popen([sys.executable, "-m", "dslearn.run", "model=gp_increment", "data.train_episodes=400",
                           "data.test_episodes=2", f"hydra.run.dir={run}"],
-                         cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.time()
     try:
         while not ((run / "run.log").is_file() and "starting" in (run / "run.log").read_text()):
