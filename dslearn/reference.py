@@ -30,7 +30,7 @@ from dslearn.errors import ConfigError
 from dslearn.models import GPMotionModel
 from dslearn.compose import build_parts
 from dslearn.filters.distributed import TrackResult, initial_belief
-from dslearn.learning.online import algorithm1
+from dslearn.learning.online import algorithm1, checkpoints as eval_points
 from dslearn.metrics import metric_rows, tracking_metrics
 from dslearn.sim.scenario import sample_split
 from dslearn.types import AGENT_DIM, safe_cholesky, spd_inverse
@@ -127,10 +127,6 @@ class ReferenceYu:
     def from_config(cls, cfg) -> "ReferenceYu":
         return cls(cfg)
 
-    def checkpoints(self) -> list[int]:
-        ev = self.cfg.data.get("eval_at")
-        return [int(self.cfg.data.train_episodes)] if ev is None else sorted({int(v) for v in ev})
-
     def run(self, progress: bool = False) -> pd.DataFrame:
         c = self.cfg
         torch.manual_seed(int(c.seed))
@@ -158,7 +154,7 @@ class ReferenceYu:
         W = fusion.weights.to(dtype)
         sig2 = float(obs.noise_std) ** 2
         learnable = model.learnable
-        checkpoints = self.checkpoints() if learnable else [int(c.data.train_episodes)]
+        checkpoints = eval_points(c.data) if learnable else [int(c.data.train_episodes)]
 
         def init(ep):
             return initial_belief(ep, network, ctx.dt, fusion, scenario.area, c.filter.prior_pos_std, c.filter.prior_vel_std)

@@ -27,6 +27,7 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
+from dslearn.compose import DTYPES
 from dslearn.schemas.core import CONF_DIR as _CONF_DIR
 from dslearn.data.datasets import load_dataset, task_datasets
 from dslearn.data.ethucy import split_scene, windows
@@ -37,7 +38,6 @@ from dslearn.models.lstm import SCHEDULE_KEYS, SocialLSTM, schedule_from_config,
 
 log = logging.getLogger("dslearn.train_lstm")
 CONF_DIR = str(_CONF_DIR)
-DTYPES = {"float64": torch.float64, "float32": torch.float32}
 #: keys of the ``lstm`` group (unknown keys are a ConfigError)
 LSTM_GROUP_KEYS = ("embed", "hidden", "obs_len", "pred_len", "pooling", "grid", "neighbourhood", "noise_std") + SCHEDULE_KEYS
 

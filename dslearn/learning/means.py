@@ -8,10 +8,12 @@ name (``zero``, ``identity``, ``constant``: the last one is learned with the ker
 
 from __future__ import annotations
 
+import abc
+
 from torch import Tensor, nn
 
 
-class PriorMeanModule(nn.Module):
+class PriorMeanModule(nn.Module, abc.ABC):
     """A fixed prior mean ``m(x)`` with its Jacobian; ``output_dim`` and ``input_dim`` are set by
     the backend that holds it (:meth:`bind`)."""
 
@@ -23,11 +25,13 @@ class PriorMeanModule(nn.Module):
         self.input_dim, self.output_dim = int(input_dim), int(output_dim)
         return self
 
-    def forward(self, x: Tensor) -> Tensor:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def forward(self, x: Tensor) -> Tensor:
+        """``m(x)``: ``(S, N, Dx) -> (S, N, Dy)``."""
 
-    def jacobian(self, x: Tensor) -> Tensor:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def jacobian(self, x: Tensor) -> Tensor:
+        """``dm/dx``: ``(S, N, Dx) -> (S, N, Dy, Dx)``."""
 
 
 class ZeroMean(PriorMeanModule):

@@ -81,3 +81,10 @@ def algorithm1(learn: Callable[[int], None], checkpoints: list[int], evaluate: C
             seen += 1
         frames.append(evaluate(k))
     return pd.concat(frames, ignore_index=True)
+
+
+def checkpoints(data) -> list[int]:
+    """The training-episode counts at which a study evaluates: ``data.eval_at`` (sorted, unique) or
+    just ``data.train_episodes``."""
+    ev = data.get("eval_at")
+    return [int(data.train_episodes)] if ev is None else sorted({int(v) for v in ev})

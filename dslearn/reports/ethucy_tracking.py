@@ -171,7 +171,7 @@ def fig_trajectories(results: pd.DataFrame, out: Path, max_episodes: int = 3) ->
 
 def real_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     """Write the tables (``.md`` + ``.csv``) and figures into ``out_dir``; return the Markdown."""
-    from dslearn.reports.tables import markdown
+    from dslearn.reports.tables import markdown, write_table
 
     out_dir = Path(out_dir)
     parts = []
@@ -181,12 +181,8 @@ def real_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> 
         ("ethucy_averages", "Sensor averages by scene", average_table(results)),
         ("ethucy_info", "Episodes, fitted SFM parameters, LSTM final training loss", info_table(results)),
     ):
-        if tab.empty:
-            continue
-        md = f"### {title}\n\n{markdown(tab)}"
-        atomic_write_csv(tab, out_dir / f"{name}.csv")
-        atomic_write_text(out_dir / f"{name}.md", md + "\n")
-        parts.append(md)
+        if not tab.empty:
+            parts.append(write_table(out_dir, name, title, tab))
     ds = data_size_table(results)
     if not ds.empty:
         show = ds.copy()

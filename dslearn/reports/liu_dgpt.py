@@ -8,6 +8,8 @@ import pathlib
 import numpy as np
 import pandas as pd
 
+from dslearn.reports.tables import markdown
+
 TASK = "liu_dgpt"
 #: the NRMSE columns of Tables I-II
 METRICS = ("nrmse_x_updated", "nrmse_y_updated", "nrmse_x_predictive", "nrmse_y_predictive")
@@ -18,12 +20,29 @@ _TITLE = {"temporal": ("liu_table1_temporal", "Table I (temporal GP)"),
           "spatiotemporal": ("liu_table2_spatiotemporal", "Table II (spatio-temporal GP)")}
 
 
-def _md_table(df: pd.DataFrame) -> str:
-    cols = list(df.columns)
-    lines = ["| " + " | ".join(str(c) for c in cols) + " |", "|" + "---|" * len(cols)]
-    for _, r in df.iterrows():
-        lines.append("| " + " | ".join(str(v) for v in r.tolist()) + " |")
-    return "\n".join(lines)
+def _method_rows(a: pd.DataFrame, noises, cells) -> pd.DataFrame:
+    """One row per (scenario, approach) of ``a``, in :data:`_METHOD_ORDER`; for every noise level
+    ``nz`` the columns ``cells(rows of a at nz, nz)`` returns."""
+    rows = []
+    for sc in sorted(a["scenario"].unique()):
+        for mod, con, label in _METHOD_ORDER:
+            sub = a[(a["scenario"] == sc) & (a["model"] == mod) & (a["consensus"] == con)]
+            if sub.empty:
+                continue
+            row = {"Scenario": sc.upper(), "Approach": label}
+            for nz in noises:
+                row.update(cells(sub[sub["noise"] == nz], nz))
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _means(sub: pd.DataFrame, nz, metrics, fmt) -> dict:
+    """``{column: formatted mean}`` of each ``(metric, short name)`` at noise level ``nz``."""
+    out = {}
+    for met, short in metrics:
+        v = sub[sub["metric"] == met]["mean"]
+        out[f"σ={nz:g} {short}"] = fmt(v.iloc[0]) if len(v) else ""
+    return out
 
 
 def _hyper_table(a: pd.DataFrame, noises) -> pd.DataFrame | None:
@@ -84,43 +103,20 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: pathlib.Path) 
         name, title = _TITLE.get(gp_input, (f"liu_table_{gp_input}", gp_input))
         a = agg[agg["gp_input"] == gp_input]
         noises = sorted(a["noise"].unique())
-        rows = []
-        for sc in sorted(a["scenario"].unique()):
-            for mod, con, label in _METHOD_ORDER:
-                sub = a[(a["scenario"] == sc) & (a["model"] == mod) & (a["consensus"] == con)]
-                if sub.empty:
-                    continue
-                row = {"Scenario": sc.upper(), "Approach": label}
-                for nz in noises:
-                    for met in METRICS:
-                        v = sub[(sub["noise"] == nz) & (sub["metric"] == met)]["mean"]
-                        short = met.replace("nrmse_", "").replace("_updated", " upd").replace("_predictive", " pred")
-                        row[f"σ={nz:g} {short}"] = f"{100 * v.iloc[0]:.2f}%" if len(v) else ""
-                rows.append(row)
-        tab = pd.DataFrame(rows)
+        shorts = [(m, m.replace("nrmse_", "").replace("_updated", " upd").replace("_predictive", " pred")) for m in METRICS]
+        tab = _method_rows(a, noises, lambda sub, nz: _means(sub, nz, shorts, lambda v: f"{100 * v:.2f}%"))
         tab.to_csv(out_dir / f"{name}.csv", index=False)
         n_runs = int(a["count"].max()) if len(a) else 0
         text = (f"### {title}: NRMSE (RMSE / range of the true coordinate), mean over {n_runs} "
-                f"MC runs\n\n" + _md_table(tab))
+                f"MC runs\n\n" + markdown(tab))
         # UCB coverage table
-        crow = []
-        for sc in sorted(a["scenario"].unique()):
-            for mod, con, label in _METHOD_ORDER:
-                sub = a[(a["scenario"] == sc) & (a["model"] == mod) & (a["consensus"] == con)]
-                if sub.empty:
-                    continue
-                row = {"Scenario": sc.upper(), "Approach": label}
-                for nz in noises:
-                    for met, sh in (("ucb_coverage", "UCB cov"), ("coverage_3sigma", "3σ cov")):
-                        v = sub[(sub["noise"] == nz) & (sub["metric"] == met)]["mean"]
-                        row[f"σ={nz:g} {sh}"] = f"{v.iloc[0]:.3f}" if len(v) else ""
-                crow.append(row)
-        ctab = pd.DataFrame(crow)
+        coverage = (("ucb_coverage", "UCB cov"), ("coverage_3sigma", "3σ cov"))
+        ctab = _method_rows(a, noises, lambda sub, nz: _means(sub, nz, coverage, lambda v: f"{v:.3f}"))
         ctab.to_csv(out_dir / f"{name}_ucb_coverage.csv", index=False)
         nominal = a[a["metric"] == "ucb_nominal"]["mean"]
         nom = f"{nominal.iloc[0]:.2f}" if len(nominal) else "?"
         text += (f"\n\nEmpirical coverage of the Theorem 1 bound (Eq. 24, nominal ≥ {nom}) and of the "
-                 f"3σ band, updated estimates:\n\n" + _md_table(ctab))
+                 f"3σ band, updated estimates:\n\n" + markdown(ctab))
         htab = _hyper_table(a, noises)
         if htab is not None:
             htab.to_csv(out_dir / f"{name}_hyper.csv", index=False)
@@ -128,7 +124,7 @@ def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: pathlib.Path) 
                      "over the rules' pipelines, max for maxima): iterations per step, learned noise "
                      "variance [m²] (true σ²), and with `task.hyper.gap_check=true` the distance "
                      "below the maximum of Eq. 15 / Eq. 14 [nats] and the maximiser's noise "
-                     "variance:\n\n" + _md_table(htab))
+                     "variance:\n\n" + markdown(htab))
         (out_dir / f"{name}.md").write_text(text + "\n")
         md.append(text)
 

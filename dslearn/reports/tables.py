@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pandas as pd
 
 #: the row label of the average over the sensing nodes
@@ -15,3 +17,14 @@ def markdown(df: pd.DataFrame) -> str:
     for row in df.itertuples(index=False):
         lines.append("| " + " | ".join(str(v) for v in row) + " |")
     return "\n".join(lines)
+
+
+def write_table(out_dir: Path, name: str, title: str, tab: pd.DataFrame) -> str:
+    """Write ``tab`` as ``<name>.csv`` and, under a ``### title`` heading, ``<name>.md`` (atomically);
+    return the Markdown."""
+    from dslearn.io import atomic_write_csv, atomic_write_text
+
+    md = f"### {title}\n\n{markdown(tab)}"
+    atomic_write_csv(tab, Path(out_dir) / f"{name}.csv")
+    atomic_write_text(Path(out_dir) / f"{name}.md", md + "\n")
+    return md

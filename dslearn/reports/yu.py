@@ -14,7 +14,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from dslearn.io import atomic_write_csv, atomic_write_text  # noqa: E402
 
 MODEL_ORDER = ["gp", "gp_increment", "lin", "sfm"]
 
@@ -125,7 +124,7 @@ def fig_training(summary: pd.DataFrame, out: Path) -> Path | None:
 
 
 def yu_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
-    from dslearn.reports.tables import markdown
+    from dslearn.reports.tables import write_table
 
     out_dir = Path(out_dir)
     parts = []
@@ -135,12 +134,8 @@ def yu_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> st
         ("yu_table2", "Prediction error [m] from the true state at t=0 (Table II shape)", table_prediction(summary)),
         ("yu_nees", "NEES/Dx, averaged over time (1 = consistent)", table_tracking(summary, "nees")),
     ):
-        if tab.empty:
-            continue
-        md = f"### {title}\n\n{markdown(tab)}"
-        atomic_write_csv(tab, out_dir / f"{name}.csv")
-        atomic_write_text(out_dir / f"{name}.md", md + "\n")
-        parts.append(md)
+        if not tab.empty:
+            parts.append(write_table(out_dir, name, title, tab))
     fig = fig_training(summary, out_dir)
     if fig is not None:
         parts.append(f"Figure: {fig.name}")

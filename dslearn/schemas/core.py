@@ -81,9 +81,15 @@ class TaskHead:
 
 
 @dataclass
-class ScenarioSchema:
+class PartSchema:
+    """The keys of a config part that Hydra instantiates (:mod:`dslearn.compose`)."""
+
     _target_: Optional[str] = None  # the class / factory Hydra instantiates (dslearn.compose)
     _partial_: bool = False
+
+
+@dataclass
+class ScenarioSchema(PartSchema):
     # nested lists: List[Any] (OmegaConf does not convert ints inside nested typed lists); checked below
     desired_velocities: List[Any] = field(default_factory=lambda: [[1.0, -1.0], [-1.0, -1.0]])
     start_corners: List[Any] = field(default_factory=lambda: [[1.5, 5.0], [5.0, 5.0]])
@@ -99,9 +105,7 @@ class ScenarioSchema:
 
 
 @dataclass
-class NetworkSchema:
-    _target_: Optional[str] = None  # the class / factory Hydra instantiates (dslearn.compose)
-    _partial_: bool = False
+class NetworkSchema(PartSchema):
     num_sensors: int = 4
     num_comm: int = 6
     area: List[float] = field(default_factory=lambda: [0.0, 8.0, 0.0, 8.0])
@@ -115,9 +119,7 @@ class NetworkSchema:
 
 
 @dataclass
-class ModelSchema:
-    _target_: Optional[str] = None  # the class / factory Hydra instantiates (dslearn.compose)
-    _partial_: bool = False
+class ModelSchema(PartSchema):
     name: str = "gp"
     noise_std: float = 0.5
     # GP models
@@ -144,9 +146,7 @@ class ModelSchema:
 
 
 @dataclass
-class ObservationSchema:
-    _target_: Optional[str] = None  # the class / factory Hydra instantiates (dslearn.compose)
-    _partial_: bool = False
+class ObservationSchema(PartSchema):
     name: str = "linear"
     noise_std: float = 0.2
     outputscale: Optional[float] = None
@@ -156,9 +156,7 @@ class ObservationSchema:
 
 
 @dataclass
-class ConsensusSchema:
-    _target_: Optional[str] = None  # the class / factory Hydra instantiates (dslearn.compose)
-    _partial_: bool = False
+class ConsensusSchema(PartSchema):
     name: str = "hybrid"
     iterations: int = 4
     weights: str = "uniform"

@@ -55,7 +55,7 @@ from dslearn.models import ConstantVelocity, LinearPositionObservation
 from dslearn.models.base import MotionModel
 from dslearn.sim.network import SensorNetwork
 from dslearn.sim.real import Data, real_source
-from dslearn.sim.scenario import Episodes, sample_split
+from dslearn.sim.scenario import Episodes, Measurements, sample_split
 from dslearn.types import POS, agents, safe_cholesky
 
 log = logging.getLogger(__name__)
@@ -100,9 +100,8 @@ def _gp_name(cfg, cv_mean: bool) -> str:
     return f"{cfg.model.name}_cv" if cv_mean else str(cfg.model.name)
 
 
-def _init(cfg, data: Data, ep, fusion: Fusion):
-    meas = ep.measurements if isinstance(ep, Episodes) else ep
-    return initial_belief(meas, data.network, data.ctx.dt, fusion, data.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
+def _init(cfg, data: Data, ep: Measurements, fusion: Fusion):
+    return initial_belief(ep, data.network, data.ctx.dt, fusion, data.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
 
 
 @torch.no_grad()
@@ -122,7 +121,7 @@ def cm_fused(cfg: DictConfig, data: Data, ep: Episodes) -> Tensor:
                                                  iterations=int(c.iterations), omega=c.omega)
     lin = ConstantVelocity(data.num_agents, float(cfg.task.lin.noise_std))
     obs = LinearPositionObservation(net.meas_std)
-    res = track(ep.measurements, net, lin, obs, fusion, data.ctx, _init(cfg, data, ep, fusion))
+    res = track(ep.measurements, net, lin, obs, fusion, data.ctx, _init(cfg, data, ep.measurements, fusion))
     info = res.info.sum(0)
     q = (res.info @ res.mean.unsqueeze(-1)).sum(0)
     return torch.cholesky_solve(q, safe_cholesky(info)).squeeze(-1)

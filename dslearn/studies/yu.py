@@ -22,7 +22,7 @@ from omegaconf import DictConfig
 from dslearn.compose import build_parts
 from dslearn.diagnostics import Diagnostics
 from dslearn.filters.distributed import initial_belief
-from dslearn.learning.online import OnlineLearner
+from dslearn.learning.online import OnlineLearner, checkpoints as eval_points
 from dslearn.metrics import metric_rows, prediction_error, tracking_metrics
 from dslearn.progress import evaluation_bar, training_bar
 from dslearn.sim.scenario import sample_split
@@ -64,10 +64,7 @@ class YuStudy:
         return cls.from_config(cfg)
 
     def checkpoints(self) -> list[int]:
-        ev = self.cfg.data.get("eval_at")
-        if ev is None:
-            return [int(self.cfg.data.train_episodes)]
-        return sorted({int(v) for v in ev})
+        return eval_points(self.cfg.data)
 
     def build(self):
         parts = build_parts(self.cfg)
