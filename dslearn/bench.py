@@ -7,6 +7,11 @@ reports the ratio ``reference / fast``.
 
 Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
 
+  speed      the speed targets: one GP consensus configuration (gp / hybrid, 200 + 50 episodes,
+             one thread) with its Cholesky factor in float64 and in float32, in one process,
+             against the previous release's figure (:data:`PREVIOUS_RELEASE`); then
+             ``dslearn-run experiment=yu_table1`` end to end with the default launcher.
+
   reference  Yu protocol, fast path vs the straightforward reference (per-node loops, GPyTorch
              ExactGP refit from scratch at every step, autograd Jacobians) on the SAME reduced
              protocol (``--ref-train`` + ``--ref-test`` episodes), both timed in one process;
@@ -47,7 +52,14 @@ import torch
 
 from dslearn.io import atomic_write_csv, atomic_write_text
 
-ALL = ("reference", "protocol", "gp", "fantasy", "network", "dtype", "studies")
+ALL = ("speed", "reference", "protocol", "gp", "fantasy", "network", "dtype", "studies")
+
+#: the previous release's figures on the project's 2-core machine (AMD EPYC, torch 2.13 CPU), the
+#: denominators of the ``speed`` workload's ratios: one GP consensus configuration (gp / hybrid
+#: omega = 1, 200 + 50 episodes, one thread; ``YuStudy.run`` only, measured at commit 27f97cd on
+#: the idle machine) and the Table I grid (``dslearn-run experiment=yu_table1``; that release's
+#: fastest way, ``hydra/launcher=joblib hydra.launcher.n_jobs=2``, as its README gives it)
+PREVIOUS_RELEASE = {"config_s": 54.3, "grid_s": 293.0, "release": "27f97cd"}
 
 
 def _peak_mb() -> float:
@@ -132,6 +144,58 @@ def item_protocol(model: str, fusion: str, train: int, test: int, device: str = 
                  track_err=float(sens[sens.metric == "track_err"]["value"].mean()),
                  pred_err=float(sens[sens.metric == "pred_err"]["value"].mean()),
                  peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device))]
+
+
+def item_speed_config(train: int, test: int, model: str = "gp", fusion: str = "hybrid") -> list[dict]:
+    """One GP consensus configuration, single-threaded, its factor in float64 then float32 in this
+    same process: wall time of the run, the ratio to the previous release's figure and between the
+    two factor precisions, and the largest change of any result value."""
+    from dslearn.studies.yu import YuStudy
+
+    rows, runs = [], {}
+    for fd in ("float64", "float32"):
+        cfg = _compose([f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}",
+                        f"data.test_episodes={test}", f"model.factor_dtype={fd}"])
+        study = YuStudy.from_config(cfg)
+        t0 = time.perf_counter()
+        df = study.run()
+        wall = time.perf_counter() - t0
+        runs[fd] = (wall, df)
+        sens = df[df["node_kind"] == "sensor"]
+        full = (train, test) == (200, 50)
+        prev = PREVIOUS_RELEASE["config_s"] if full and fd == "float64" else None
+        rows.append(dict(workload="speed", item=f"one configuration {model}/{fusion} {train}+{test} ep, factor {fd}",
+                         nodes=10, wall_s=wall, reference_s=prev, ratio=None if prev is None else prev / wall,
+                         track_err=float(sens[sens.metric == "track_err"]["value"].mean()),
+                         pred_err=float(sens[sens.metric == "pred_err"]["value"].mean()), peak_mb=_peak_mb(),
+                         reference_note=(f"previous release {PREVIOUS_RELEASE['release']}: {prev} s" if prev else "")))
+    (w64, a), (w32, b) = runs["float64"], runs["float32"]
+    diff = (a["value"].to_numpy() - b["value"].to_numpy())
+    rel = float(abs(diff).max() / max(abs(a["value"].to_numpy()).max(), 1e-300))
+    rows[-1].update(reference_s=w64, ratio=w64 / w32, max_abs_diff=float(abs(diff).max()),
+                    reference_note=f"float64 factor in this process: {w64:.1f} s; largest relative change {rel:.1e}")
+    return rows
+
+
+def item_grid(experiment: str = "yu_table1") -> list[dict]:
+    """``dslearn-run experiment=<grid>`` as a user runs it (the default launcher), in a subprocess:
+    end-to-end wall time and the largest worker's peak memory, against the previous release."""
+    with tempfile.TemporaryDirectory() as tmp:
+        code = ("import resource, subprocess, sys, time; t = time.perf_counter(); "
+                "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); w = time.perf_counter() - t; "
+                "print('RC', r.returncode, 'WALL', w, 'RSS', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); "
+                "print(r.stderr[-2000:] if r.returncode else '')")
+        out = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "dslearn.run", f"experiment={experiment}",
+                              f"hydra.sweep.dir={tmp}/sweep", "print_table=false"], capture_output=True, text=True)
+    toks = out.stdout.split()
+    try:
+        rc, wall, rss = int(toks[1]), float(toks[3]), float(toks[5]) / 1024
+    except (IndexError, ValueError):
+        rc, wall, rss = -1, float("nan"), float("nan")
+    prev = PREVIOUS_RELEASE["grid_s"] if experiment == "yu_table1" else None
+    return [dict(workload="speed", item=f"dslearn-run experiment={experiment} (default launcher)" + ("" if rc == 0 else f" (FAILED rc={rc})"),
+                 wall_s=wall, reference_s=prev, ratio=None if prev is None else prev / wall, peak_mb=rss,
+                 reference_note=f"previous release {PREVIOUS_RELEASE['release']}, joblib on 2 cores: {prev} s" if prev else "")]
 
 
 def _make_gp(variant: str, nodes: int, n: int, dim: int, extra: int, gen, dtype=torch.float64):
@@ -281,7 +345,7 @@ def item_study(args: list[str], label: str) -> list[dict]:
                 "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); w = time.perf_counter() - t; "
                 "print('RC', r.returncode, 'WALL', w, 'RSS', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); "
                 "print(r.stderr[-2000:] if r.returncode else '')")
-        out = subprocess.run([sys.executable, "-c", code, "dslearn-run", *args, f"hydra.run.dir={tmp}/run", "print_table=false"],
+        out = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "dslearn.run", *args, f"hydra.run.dir={tmp}/run", "print_table=false"],
                              capture_output=True, text=True)
     toks = out.stdout.split()
     try:
@@ -378,6 +442,11 @@ def plan(workloads, quick: bool, a) -> list:
     """The list of (item function, kwargs) or parallel groups to run."""
     steps = []
     models, fusions = a.models.split(","), a.fusions.split(",")
+    if "speed" in workloads:  # the figures of the speed targets: one configuration, then the Table I grid
+        tr, te = (50, 50) if quick else (200, 50)
+        steps.append(("item_speed_config", dict(train=tr, test=te)))
+        if not quick:
+            steps.append(("item_grid", dict(experiment="yu_table1")))
     if "reference" in workloads:
         tr, te = (2, 2) if quick else (a.ref_train, a.ref_test)
         for m in models:

@@ -908,7 +908,7 @@ def help_text(width: int = 100) -> str:
         "sweeps:",
         f"  {PROG} -m model=lin,gp consensus=individual,hybrid seed=0,1,2 hydra.sweep.dir=multirun/mine",
         "  every combination is checked before the first job starts; resume an interrupted sweep with the",
-        "  same command plus resume=true; hydra/launcher=joblib runs jobs in parallel (pip install \"dslearn[joblib]\").",
+        "  same command plus resume=true; jobs run in parallel on every core (joblib; hydra/launcher=basic: one by one).",
         "",
         "outputs:",
         "  one run: outputs/<study>/<date_time>/ (or hydra.run.dir=DIR): results.csv (tidy: one row per",

@@ -100,3 +100,70 @@ def test_cuda_gp_step_has_no_host_sync():
             gp.append(x, torch.sin(x))
     finally:
         torch.cuda.set_sync_debug_mode("default")
+
+
+def _grown(factor_dtype=None, n=200, s=3, d=4, seed=2):
+    g = torch.Generator().manual_seed(seed)
+    gp = OnlineGP(s, d, d, outputscale=1.2, lengthscale=1.6, noise_std=0.4, mean="identity", capacity=8,
+                  factor_dtype=factor_dtype)
+    X = 1.5 * torch.randn(n, s, d, generator=g, dtype=D)
+    for i in range(n):
+        gp.predict(X[i].unsqueeze(1))
+        gp.append(X[i], X[i] + 0.3 * torch.sin(X[i]), torch.tensor([True, i % 4 != 0, True]))
+    return gp, g
+
+
+def test_cached_kernel_equals_gpytorch_kernel_at_invalid_points_too():
+    gp, g = _grown(n=50)
+    xq = torch.randn(3, 6, 4, generator=g, dtype=D)
+    X, _, valid = gp.data()
+    ref = gp.covar_module(X, xq).to_dense().detach() * valid.unsqueeze(-1)
+    assert torch.allclose(gp._cross(xq), ref, atol=1e-12)
+    assert torch.allclose(gp.kernel(X, xq) * valid.unsqueeze(-1), ref, atol=1e-12)
+
+
+def test_paired_solves_of_predict_equal_a_plain_append():
+    """Predict-then-append at one point (the paired solves) gives the append without a prediction;
+    predicting twice without appending turns the eager backward solve off, and results stay equal."""
+    g = torch.Generator().manual_seed(3)
+    a = OnlineGP(2, 4, 4, mean="identity", capacity=8)
+    b = OnlineGP(2, 4, 4, mean="identity", capacity=8)
+    X = torch.randn(60, 2, 4, generator=g, dtype=D)
+    for i in range(60):
+        a.predict(X[i].unsqueeze(1))
+        if i == 30:  # a second prediction before appending
+            a.predict(X[i].unsqueeze(1) + 0.1)
+            assert not a._streaming
+        a.append(X[i], torch.cos(X[i]))
+        b.append(X[i], torch.cos(X[i]))
+    assert a._streaming  # turned back on by the next append that used a prediction's solve
+    xq = torch.randn(2, 5, 4, generator=g, dtype=D)
+    for u, v in zip(a.predict(xq), b.predict(xq)):
+        assert torch.allclose(u, v, atol=1e-11)
+    assert torch.allclose(a.alpha, b.alpha, atol=1e-10)
+
+
+def test_float32_factor_close_to_float64_factor():
+    """model.factor_dtype=float32: the factor in single precision, the rest in float64 (stated tolerance:
+    1e-4 relative on mean, variance and Jacobian at n = 200)."""
+    ref, g = _grown()
+    f32, _ = _grown(torch.float32)
+    assert f32.L.dtype == torch.float32 and f32.alpha.dtype == D and f32.X.dtype == D
+    xq = torch.randn(3, 7, 4, generator=g, dtype=D)
+    for u, v in zip(ref.predict(xq), f32.predict(xq)):
+        assert v.dtype == D
+        assert ((u - v).abs().max() / u.abs().max()).item() < 1e-4
+
+
+def test_float32_factor_study_and_bad_values():
+    from dslearn.errors import ConfigError
+
+    a = _opts("gp_increment", "hybrid", 2, 2).run()
+    b = _opts("gp_increment", "hybrid", 2, 2, **{"model.factor_dtype": "float32"}).run()
+    for metric in ("track_err", "pred_err"):
+        x, y = (d[d.metric == metric]["value"].to_numpy() for d in (a, b))
+        assert np.abs(x - y).max() < 1e-4 * np.abs(x).max(), metric
+    with pytest.raises(ConfigError, match="model.factor_dtype"):
+        _opts("gp", "hybrid", 1, 1, **{"model.factor_dtype": "float16"})
+    with pytest.raises(ConfigError, match="model.factor_dtype"):
+        GPMotionModel(8, num_nodes=2, variant="window", window=20, factor_dtype="float32")

@@ -95,7 +95,7 @@ def _md_table(text, heading):
 @pytest.fixture(scope="module")
 def basic_sweep(tmp_path_factory):
     d = tmp_path_factory.mktemp("basic")
-    r = _sweep(d, *GRID, *TINY)
+    r = _sweep(d, *GRID, *TINY, "hydra/launcher=basic")  # the default is joblib: compared below
     assert r.returncode == 0, r.stderr[-2000:]
     return d
 
@@ -145,11 +145,14 @@ def test_basic_sweep_one_table_and_report(basic_sweep):
     assert "Open this file first" in md and "figure.png" in md and "- `yu_table1.csv`" in md
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None
-                    if importlib.util.find_spec("hydra_plugins") else True, reason="hydra-joblib-launcher not installed")
-def test_joblib_sweep_identical_to_basic(basic_sweep, tmp_path):
-    r = _sweep(tmp_path, *GRID, *TINY, "hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
+def test_default_launcher_is_parallel_and_identical_to_basic(basic_sweep, tmp_path):
+    """The default launcher (joblib, one worker per core) gives the basic launcher's table."""
+    r = _sweep(tmp_path, *GRID, *TINY)
+    assert r.returncode == 0, r.stderr[-2000:]
+    from omegaconf import OmegaConf
+
+    launcher = OmegaConf.load(tmp_path / "multirun.yaml").hydra.launcher
+    assert launcher._target_.endswith("JoblibLauncher") and launcher.n_jobs == -1
     assert r.returncode == 0, r.stderr[-2000:]
     a, b = _table(basic_sweep), _table(tmp_path)
     pd.testing.assert_frame_equal(a.drop(columns=["run_dir"]), b.drop(columns=["run_dir"]))

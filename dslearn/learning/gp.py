@@ -89,7 +89,11 @@ class OnlineGP(PriorMean, nn.Module):
         mean: prior mean: ``zero``; ``constant`` (learned by :meth:`fit`); ``identity``
             (``m(x) = x[..., :Dy]``, so the GP learns the increment); or a module of
             :mod:`dslearn.learning.means` (e.g. ``ConstantVelocityMean(dt)``).
-        capacity: initial buffer size (grows by doubling).
+        capacity: initial buffer size (grows in chunks of 128 rows).
+        factor_dtype: storage of the Cholesky factor (default ``dtype``). ``torch.float32`` halves
+            the memory every step streams (the triangular solves are bound by it) while kernel
+            values, targets, ``alpha`` and the diagonal stay in ``dtype``; the accuracy cost on the
+            Yu tables is measured in the README.
     """
 
     def __init__(
@@ -104,6 +108,7 @@ class OnlineGP(PriorMean, nn.Module):
         capacity: int = 256,
         dtype: torch.dtype = torch.float64,
         device: str | torch.device = "cpu",
+        factor_dtype: torch.dtype | None = None,
     ):
         super().__init__()
         check_positive("model.outputscale", outputscale)
@@ -120,32 +125,51 @@ class OnlineGP(PriorMean, nn.Module):
         self.constant = nn.Parameter(torch.zeros(self.num_nodes, self.output_dim), requires_grad=mean == "constant")
         self.to(dtype=dtype, device=device)
         self.dtype_, self.device_ = dtype, torch.device(device)
+        self.factor_dtype_ = dtype if factor_dtype is None else factor_dtype
         self.n = 0
         self.clamped = torch.zeros((), dtype=torch.long, device=self.device_)  # clamped diagonals (CUDA)
+        self._snapshot_hypers()
+        self._streaming = True  # predict at one point then append there (Algorithm 1): solve both at once
+        self._pending = False  # a paired solve of predict() not yet used by an append
         self._alloc(int(capacity))
 
     # storage -----------------------------------------------------------------------------
-    def _alloc(self, cap: int) -> None:
+    def _alloc(self, cap: int, factor: bool = True) -> None:
         s, d, o = self.num_nodes, self.input_dim, self.output_dim
         kw = dict(dtype=self.dtype_, device=self.device_)
         self.X = torch.zeros(s, cap, d, **kw)
+        self.Xs = torch.zeros(s, cap, d, **kw)  # X / lengthscale: the kernel's scaled inputs
+        self.Xn = torch.zeros(s, cap, **kw)  # their squared norms (the kernel needs no (S, n, d) temporary)
         self.R = torch.zeros(s, cap, o, **kw)  # residual targets y - m(x)
         self.V = torch.zeros(s, cap, o, **kw)  # L^{-1} R
+        self.A = torch.zeros(s, cap, o, **kw)  # alpha = K^{-1} R, updated in place by append
         # Cholesky factor of K + sigma^2 I in the top-left n x n block, identity below: solves
         # run on the whole contiguous buffer (a strided n x n view takes a ~20x slower path)
-        self.L = torch.eye(cap, **kw).repeat(s, 1, 1)
+        if factor:
+            self.L = torch.zeros(s, cap, cap, dtype=self.factor_dtype_, device=self.device_)
+            self.L.diagonal(dim1=-2, dim2=-1).fill_(1.0)
         self.mask = torch.zeros(s, cap, dtype=torch.bool, device=self.device_)
         self._alpha = None
+        self._last = None
 
     def _grow(self) -> None:
-        old = (self.X, self.R, self.V, self.L, self.mask)
-        n = self.n
+        old = (self.X, self.Xs, self.Xn, self.R, self.V, self.L, self.mask)
+        alpha, n = self._alpha, self.n
         # grow in chunks of 128 rows: every solve runs over the whole buffer, so slack rows cost
         # time at every step (a growth factor of 1.25 wasted up to 56% of a solve); the copy is O(n^2)
-        self._alloc(self.X.shape[1] + 128)
-        self.X[:, :n], self.R[:, :n], self.V[:, :n] = old[0][:, :n], old[1][:, :n], old[2][:, :n]
-        self.L[:, :n, :n] = old[3][:, :n, :n]
-        self.mask[:, :n] = old[4][:, :n]
+        cap = self.X.shape[1] + 128
+        self._alloc(cap, factor=False)
+        for new, buf in zip((self.X, self.Xs, self.Xn, self.R, self.V, self.mask), old[:5] + old[6:]):
+            new[:, :n] = buf[:, :n]
+        # the new factor written once: the old block, zeros around it, identity below
+        self.L = torch.empty(self.num_nodes, cap, cap, dtype=self.factor_dtype_, device=self.device_)
+        self.L[:, :n, :n] = old[5][:, :n, :n]
+        self.L[:, :n, n:] = 0.0
+        self.L[:, n:] = 0.0
+        self.L[:, n:, n:].diagonal(dim1=-2, dim2=-1).fill_(1.0)
+        if alpha is not None:
+            self.A[:, :n] = alpha
+            self._alpha = self.A[:, :n]
 
     # hyperparameters ---------------------------------------------------------------------
     @property
@@ -173,13 +197,56 @@ class OnlineGP(PriorMean, nn.Module):
             d2 = torch.cdist(a / ls, b / ls).pow(2)  # matmul-based for large inputs: no (Na, Nb, d) tensor
             return self.covar_module.outputscale.to(a).reshape(-1, 1, 1) * torch.exp(-0.5 * d2)
 
+    def _snapshot_hypers(self) -> None:
+        """The hyperparameters the factor was built with, as plain tensors: ``(S, 1, 1)`` lengthscales,
+        ``(S,)`` output variances and noise variances (the per-step path reads these, not GPyTorch's
+        transformed parameters). Taken at construction and by :meth:`refactorize`, which every
+        hyperparameter change must be followed by (:meth:`fit` does it)."""
+        kw = dict(dtype=self.dtype_, device=self.device_)
+        self._ls = self.covar_module.base_kernel.lengthscale.detach().to(**kw).reshape(-1, 1, 1).clone()
+        self._os = self.outputscale.to(**kw).clone()
+        self._noise = self.noise_var.to(**kw).clone()
+
+    def _scale(self) -> Tensor:
+        """(S, 1, 1) lengthscales."""
+        return self._ls
+
+    def _cross(self, x: Tensor) -> Tensor:
+        r"""``k(X, x) (S, n, N)`` against the stored inputs for ``x (S, N, d)``, zero at invalid points:
+        :math:`\|a-b\|^2 = \|a\|^2 + \|b\|^2 - 2 a^T b` on the cached scaled inputs and their norms
+        (one ``(S, n, N)`` result, no ``(S, n, d)`` temporary; equals :meth:`kernel`, tested)."""
+        n = self.n
+        xs = x / self._scale()
+        xn = (xs * xs).sum(-1)  # (S, N)
+        d2 = torch.baddbmm(self.Xn[:, :n].unsqueeze(-1) + xn.unsqueeze(-2), self.Xs[:, :n], xs.transpose(-1, -2), alpha=-2.0)
+        k = d2.clamp_min_(0.0).mul_(-0.5).exp_().mul_(self._os.reshape(-1, 1, 1))
+        return k.mul_(self.mask[:, :n].unsqueeze(-1))
+
+    def _cache_inputs(self, lo: int, hi: int) -> None:
+        """Refresh the scaled inputs and norms of rows ``lo:hi`` (after writing ``X`` or the lengthscale)."""
+        xs = self.X[:, lo:hi] / self._scale()
+        self.Xs[:, lo:hi] = xs
+        self.Xn[:, lo:hi] = (xs * xs).sum(-1)
+
+    def _solve_pair(self, rhs: Tensor) -> tuple[Tensor, Tensor]:
+        r"""``w = L^{-1} rhs`` and ``b = L^{-T} w = (K + \sigma^2 I)^{-1} rhs`` for ``rhs (S, n, 1)``:
+        the prediction's variance solve and the append's, done together at the predicted point."""
+        n, cap = self.n, self.L.shape[-1]
+        full = rhs.new_zeros(rhs.shape[0], cap, 1, dtype=self.L.dtype)
+        full[:, :n] = rhs
+        w = torch.linalg.solve_triangular(self.L, full, upper=False)
+        b = torch.linalg.solve_triangular(self.L.transpose(-1, -2), w, upper=True)
+        return w[:, :n].to(self.dtype_), b[:, :n].to(self.dtype_)
+
     # online update -----------------------------------------------------------------------
     @torch.no_grad()
     def append(self, x: Tensor, y: Tensor, valid: Tensor | None = None) -> None:
         r"""Append one example per node, updating the Cholesky factor by one row (:math:`O(n^2)`).
 
         With :math:`K_n = L L^T`, the new row is :math:`l = L^{-1} k(X, x)` and the new
-        diagonal :math:`d = \sqrt{k(x,x) + \sigma_\epsilon^2 - l^T l}`.
+        diagonal :math:`d = \sqrt{k(x,x) + \sigma_\epsilon^2 - l^T l}`; :math:`\alpha` is updated in
+        place through :math:`b = L^{-T} l`. When ``x`` is the point :meth:`predict` was just asked
+        about (Algorithm 1: ŷ^{t-1} is both), both solves are the ones that prediction did.
 
         Args:
             x: (S, Dx) inputs; y: (S, Dy) outputs; valid: (S,) bool, False = skip (no effect).
@@ -195,17 +262,17 @@ class OnlineGP(PriorMean, nn.Module):
         n = self.n
         x = x.to(self.X)
         xs = x.unsqueeze(1)
-        kxx = self.kernel(xs, xs).reshape(s)
-        last = getattr(self, "_last", None)
+        kxx, noise = self._os, self._noise  # k(x, x) = sigma_f^2 for the RBF kernel
+        last, bvec = self._last, None
         if n > 0 and last is not None and last[2] == n and _same_input(last[0], xs, last[3]):
-            l = last[1]  # the solve done by predict() at this very input
+            l, bvec = last[1], last[4]  # the solves done by predict() at this very input
+            self._streaming, self._pending = True, False
         elif n > 0:
-            k = self.kernel(self.X[:, :n], xs).squeeze(-1) * self.mask[:, :n]
-            l = self._solve_lower(k.unsqueeze(-1)).squeeze(-1)
+            l = self._solve_lower(self._cross(xs)).squeeze(-1)
         else:
             l = x.new_zeros(s, 0)
-        d2 = kxx + self.noise_var - (l * l).sum(-1)
-        floor = 1e-10 * (kxx + self.noise_var)
+        d2 = kxx + noise - (l * l).sum(-1)
+        floor = 1e-10 * (kxx + noise)
         if self.device_.type == "cpu":  # on CUDA no host round-trip: clamp silently (counted on device)
             if bool((d2[valid] < floor[valid]).any()):
                 record_jitter(float((floor - d2).clamp_min(0).max()))
@@ -213,52 +280,62 @@ class OnlineGP(PriorMean, nn.Module):
         else:
             self.clamped = self.clamped + ((d2 < floor) & valid).sum()
         d = torch.where(valid, d2.clamp_min(floor).sqrt(), torch.ones_like(d2))
-        l = l * valid.unsqueeze(-1)
-        r = torch.where(valid.unsqueeze(-1), y.to(self.X) - self.prior_mean(xs).squeeze(1), torch.zeros_like(y, dtype=self.X.dtype))
+        vcol = valid.unsqueeze(-1)
+        l = l * vcol
+        r = torch.where(vcol, y.to(self.X) - self.prior_mean(xs).squeeze(1), torch.zeros_like(y, dtype=self.X.dtype))
         # k^T alpha = (L^{-1} k)^T (L^{-1} R) = l^T V: the residual of the new output
         resid = r - (l.unsqueeze(-2) @ self.V[:, :n]).squeeze(-2)
         v = resid / d.unsqueeze(-1)
         # block-inverse update of alpha = K^{-1} R with b = K^{-1} k = L^{-T} l, c = d^2:
-        # alpha_old += -b resid / c ; alpha_new = resid / c       (O(n^2), one solve)
+        # alpha_old += -b resid / c ; alpha_new = resid / c       (O(n), in place)
         alpha = self.alpha
         if n > 0:
-            full = l.new_zeros(s, self.L.shape[-1], 1)
-            full[:, :n, 0] = l
-            bvec = torch.linalg.solve_triangular(self.L.transpose(-1, -2), full, upper=True)[:, :n, 0]
-        else:
-            bvec = l
-        c = (d * d).unsqueeze(-1)
-        new_alpha = torch.cat([alpha - bvec.unsqueeze(-1) * (resid / c).unsqueeze(1), (resid / c).unsqueeze(1)], dim=1)
+            if bvec is None:
+                full = l.new_zeros(s, self.L.shape[-1], 1, dtype=self.L.dtype)
+                full[:, :n, 0] = l
+                bvec = torch.linalg.solve_triangular(self.L.transpose(-1, -2), full, upper=True)[:, :n, 0].to(self.dtype_)
+            else:
+                bvec = bvec * vcol
+        q = resid / (d * d).unsqueeze(-1)
+        if alpha.data_ptr() != self.A.data_ptr():
+            self.A[:, :n] = alpha
+        if n > 0:
+            self.A[:, :n].addcmul_(bvec.unsqueeze(-1), q.unsqueeze(1), value=-1.0)
+        self.A[:, n] = q
         self.L[:, n, :n] = l
         self.L[:, n, n] = d
-        self.X[:, n] = torch.where(valid.unsqueeze(-1), x, torch.zeros_like(x))
+        self.X[:, n] = torch.where(vcol, x, torch.zeros_like(x))
+        self._cache_inputs(n, n + 1)
         self.R[:, n] = r
-        self.V[:, n] = v * valid.unsqueeze(-1)
+        self.V[:, n] = v * vcol
         self.mask[:, n] = valid
         self.n = n + 1
-        self._alpha = new_alpha
+        self._alpha = self.A[:, : n + 1]
         self._last = None
 
     def _solve_lower(self, rhs: Tensor) -> Tensor:
         """``L^{-1} rhs`` for ``rhs (S, n, k)``, through the full buffer (rows past n are identity)."""
         n, cap = self.n, self.L.shape[-1]
-        full = rhs.new_zeros(rhs.shape[0], cap, rhs.shape[-1])
+        full = rhs.new_zeros(rhs.shape[0], cap, rhs.shape[-1], dtype=self.L.dtype)
         full[:, :n] = rhs
-        return torch.linalg.solve_triangular(self.L, full, upper=False)[:, :n]
+        return torch.linalg.solve_triangular(self.L, full, upper=False)[:, :n].to(self.dtype_)
 
     @torch.no_grad()
     def refactorize(self) -> None:
         """Recompute the factor from scratch (after a hyperparameter change)."""
+        self._snapshot_hypers()
         n = self.n
         if n == 0:
             return
         X, m = self.X[:, :n], self.mask[:, :n]
+        self._cache_inputs(0, n)
+        self._last = None
         self.R[:, :n] = torch.where(m.unsqueeze(-1), self.R[:, :n], torch.zeros_like(self.R[:, :n]))
         K = self.kernel(X, X) * (m.unsqueeze(-1) & m.unsqueeze(-2))
         diag = torch.where(m, self.noise_var.unsqueeze(-1).expand(-1, n), torch.zeros_like(K[..., 0]))
         K = K + torch.diag_embed(diag)
         K = K + torch.diag_embed((~m).to(K.dtype))  # decoupled unit rows for invalid points
-        self.L[:, :n, :n] = safe_cholesky(K)
+        self.L[:, :n, :n] = safe_cholesky(K)  # in dtype, stored in factor_dtype
         self.V[:, :n] = self._solve_lower(self.R[:, :n])
         self._alpha = None
 
@@ -295,17 +372,18 @@ class OnlineGP(PriorMean, nn.Module):
     def solve(self, rhs: Tensor) -> Tensor:
         r""":math:`(K + \sigma^2 I)^{-1} \mathrm{rhs}` for ``rhs (S, n, k)`` through the current factor."""
         n, cap = self.n, self.L.shape[-1]
-        full = rhs.new_zeros(rhs.shape[0], cap, rhs.shape[-1])
+        full = rhs.new_zeros(rhs.shape[0], cap, rhs.shape[-1], dtype=self.L.dtype)
         full[:, :n] = rhs
         # the factor is block-diagonal [L_n, 0; 0, I]: solving on the whole buffer is exact
-        return torch.cholesky_solve(full, self.L)[:, :n]
+        return torch.cholesky_solve(full, self.L)[:, :n].to(self.dtype_)
 
     @property
     def alpha(self) -> Tensor:
         r""":math:`(K + \sigma^2 I)^{-1} (Y - m(X))`, ``(S, n, Dy)``, cached until the next append."""
         if self._alpha is None:
             n = self.n
-            self._alpha = torch.linalg.solve_triangular(self.L.transpose(-1, -2), self.V, upper=True)[:, :n]
+            self.A[:, :n] = torch.linalg.solve_triangular(self.L.transpose(-1, -2), self.V.to(self.L.dtype), upper=True)[:, :n]
+            self._alpha = self.A[:, :n]
         return self._alpha
 
     # prediction --------------------------------------------------------------------------
@@ -332,31 +410,44 @@ class OnlineGP(PriorMean, nn.Module):
         n = self.n
         x = x.to(self.X)
         s_, nq, dx = x.shape
-        kxx = self.outputscale.unsqueeze(-1).expand(s_, nq)
+        kxx = self._os.unsqueeze(-1).expand(s_, nq)
         mean = self.prior_mean(x)
         jac = self.prior_mean_jacobian(x) if jacobian else None
         self._last = None
+        if self._pending:  # the last paired solve went unused: predicted again without appending
+            self._streaming = self._pending = False
         if n == 0:
             return mean, (kxx.clone() if variance else None), jac
-        X, m = self.X[:, :n], self.mask[:, :n]
-        ks = self.kernel(X, x) * m.unsqueeze(-1)  # (S, n, N)
-        ls2 = (self.lengthscale**2).reshape(-1, 1, 1, 1)
+        X = self.X[:, :n]
+        ks = self._cross(x)  # (S, n, N)
+        ls2 = (self._ls**2).reshape(-1, 1, 1, 1)
         var = None
         alpha = self.alpha
-        mean = mean + ks.transpose(-1, -2) @ alpha
+        ksT = ks.transpose(-1, -2)  # (S, N, n)
+        ka = ksT @ alpha  # sum_a k_a alpha_a  (S, N, Dy)
+        mean = mean + ka
+        pair = variance and nq == 1 and self._streaming
         if variance:
-            w = self._solve_lower(ks)
+            if pair:  # training: the append's backward solve too, while the factor is in cache
+                w, b = self._solve_pair(ks)
+            else:
+                w = self._solve_lower(ks)
             var = (kxx - (w * w).sum(-2)).clamp_min(0.0)
         if jacobian:
-            ksT = ks.transpose(-1, -2)  # (S, N, n)
-            ka = ksT @ alpha  # sum_a k_a alpha_a  (S, N, Dy)
-            # sum_a k_a alpha_a x_a^T  (S, N, Dy, Dx)
-            kax = (ksT.unsqueeze(-1) * alpha.unsqueeze(1)).transpose(-1, -2) @ X.unsqueeze(1)
+            # sum_a k_a alpha_a x_a^T  (S, N, Dy, Dx): through the smaller temporary
+            if nq == 1:
+                kax = torch.bmm((alpha * ks).transpose(1, 2), X).unsqueeze(1)
+            elif nq < dx:
+                kax = (ksT.unsqueeze(-1) * alpha.unsqueeze(1)).transpose(-1, -2) @ X.unsqueeze(1)
+            else:  # (S, n, Dy Dx), whatever the number of queries
+                ax = (alpha.unsqueeze(-1) * X.unsqueeze(-2)).flatten(-2)
+                kax = (ksT @ ax).unflatten(-1, (self.output_dim, dx))
             jac = jac - (ka.unsqueeze(-1) * x.unsqueeze(-2) - kax) / ls2
         if variance and nq == 1:
             # keep the input itself (not a copy): its storage cannot be reused while referenced,
             # so pointer + version identify it without a device-to-host comparison
-            self._last = (x, w[..., 0].clone(), n, x._version)
+            self._pending = pair
+            self._last = (x, w[..., 0], n, x._version, b[..., 0] if pair else None)
         return mean, var, jac
 
     # hyperparameter fitting ----------------------------------------------------------------

@@ -78,6 +78,8 @@ class WindowGP(OnlineGP):
         if not isinstance(window, int) or window < 2:
             raise ConfigError(f"model.window={window!r} must be an integer >= 2")
         kw.pop("capacity", None)
+        if kw.get("factor_dtype") not in (None, kw.get("dtype", torch.float64)):
+            raise ConfigError("model.factor_dtype: the window GP keeps its factor in the run's dtype (choose null)")
         super().__init__(num_nodes, input_dim, output_dim, capacity=window + 1, **kw)
         self.window = int(window)
         self.seen = 0
@@ -106,9 +108,11 @@ class WindowGP(OnlineGP):
         self.L[:, : n - 1, : n - 1] = L2
         self.L[:, n - 1, :] = 0.0
         self.L[:, n - 1, n - 1] = 1.0
-        for buf in (self.X, self.R, self.mask):
+        for buf in (self.X, self.Xs, self.Xn, self.R, self.mask):  # with the kernel's cached scaled inputs
             buf[:, : n - 1] = buf[:, 1:n].clone()
         self.X[:, n - 1] = 0.0
+        self.Xs[:, n - 1] = 0.0
+        self.Xn[:, n - 1] = 0.0
         self.R[:, n - 1] = 0.0
         self.mask[:, n - 1] = False
         self.V[:, : n - 1] = L2.transpose(-1, -2) @ new_alpha

@@ -13,6 +13,7 @@ from dslearn.models.base import MotionModel
 from dslearn.types import StepContext
 
 NOISE_MODES = ("latent", "predictive", "adaptive")
+FACTOR_DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
 class GPMotionModel(MotionModel):
@@ -42,6 +43,8 @@ class GPMotionModel(MotionModel):
             episodes (0 = never, the paper's fixed hyperparameters).
         noise_fading: fading factor ``b`` in (0, 1) of the ``adaptive`` noise estimate, per training
             episode (a memory of about ``1/(1-b)`` episodes).
+        factor_dtype: ``null`` (the run's dtype) or ``float32``: the exact GP's Cholesky factor in
+            single precision, everything else in the run's dtype (:class:`OnlineGP`).
         variant: ``exact`` (:class:`OnlineGP`) or a scalable variant of
             :mod:`dslearn.learning.sparse`: ``window`` (option ``window``), ``sgpr`` (``inducing``),
             ``ssgp`` (``features``, ``seed``); options are passed as keywords.
@@ -73,9 +76,14 @@ class GPMotionModel(MotionModel):
         device: str | torch.device = "cpu",
         variant: str = "exact",
         noise_fading: float = 0.9,
+        factor_dtype: str | None = None,
         **variant_options,
     ):
         super().__init__()
+        if factor_dtype is not None:
+            check_choice("model.factor_dtype", factor_dtype, tuple(FACTOR_DTYPES))
+            if variant != "exact" or variant_options:
+                raise ConfigError(f"model.factor_dtype={factor_dtype}: only the exact GP (model.variant=exact) has one")
         check_choice("model.noise", noise, NOISE_MODES)
         if not 0.0 < float(noise_fading) < 1.0:
             raise ConfigError(f"model.noise_fading={noise_fading!r} must be in (0, 1)")
@@ -89,7 +97,8 @@ class GPMotionModel(MotionModel):
         self.fit_every, self.fit_iters, self.fit_lr = int(fit_every), int(fit_iters), float(fit_lr)
         self.variant = variant
         if variant == "exact" and not variant_options:
-            self.gp = OnlineGP(num_nodes, state_dim, state_dim, outputscale, lengthscale, noise_std, mean, capacity, dtype, device)
+            self.gp = OnlineGP(num_nodes, state_dim, state_dim, outputscale, lengthscale, noise_std, mean, capacity, dtype, device,
+                               factor_dtype=None if factor_dtype is None else FACTOR_DTYPES[factor_dtype])
         else:  # scalable variants (dslearn.learning.sparse): window | sgpr | ssgp
             if fit_every and variant != "exact":
                 raise ConfigError(f"model.fit_every={fit_every}: hyperparameter fitting is only available for model.variant=exact")

@@ -133,6 +133,7 @@ class ModelSchema(PartSchema):
     fit_iters: Optional[int] = None
     fit_lr: Optional[float] = None
     capacity: Optional[int] = None
+    factor_dtype: Optional[str] = None  # exact GP: null (the run's dtype) | float32 (the Cholesky factor)
     # scalable variants (dslearn.learning.sparse)
     variant: Optional[str] = None
     window: Optional[int] = None
@@ -483,6 +484,8 @@ def validate_core(cfg: DictConfig) -> None:
         raise ConfigError(f"model.noise_fading={m.noise_fading!r} must be in (0, 1)")
     if m.jacobian is not None:
         check_choice("model.jacobian", m.jacobian, ("closed_form", "autograd"))
+    if m.factor_dtype is not None:
+        check_choice("model.factor_dtype", m.factor_dtype, ("float64", "float32"))
     # observation
     check_choice("observation.name", ob.name, ("linear", "gp"))
     check_positive("observation.noise_std", ob.noise_std)

@@ -26,7 +26,7 @@ import pandas as pd
 
 GRID = ["model=lin,sfm", "consensus=individual,hybrid"]
 LAUNCHER_ARGS = {
-    "basic": [],
+    "basic": ["hydra/launcher=basic"],
     "joblib": ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"],
     # submitit's local executor starts every job of a batch at once: cap with the sweeper's batch size
     "submitit_local": ["hydra/launcher=submitit_local", "hydra.sweeper.max_batch_size=2", "hydra.launcher.timeout_min=10"],
