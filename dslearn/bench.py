@@ -59,7 +59,7 @@ ALL = ("speed", "reference", "protocol", "gp", "fantasy", "network", "dtype", "s
 #: omega = 1, 200 + 50 episodes, one thread; ``YuStudy.run`` only, measured at commit 27f97cd on
 #: the idle machine) and the Table I grid (``dslearn-run experiment=yu_table1``; that release's
 #: fastest way, ``hydra/launcher=joblib hydra.launcher.n_jobs=2``, as its README gives it)
-PREVIOUS_RELEASE = {"config_s": 54.3, "grid_s": 293.0, "release": "27f97cd"}
+PREVIOUS_RELEASE = {"config_s": 53.2, "grid_s": 293.0, "release": "27f97cd"}
 
 
 def _peak_mb() -> float:
