@@ -177,21 +177,28 @@ def item_speed_config(train: int, test: int, model: str = "gp", fusion: str = "h
     return rows
 
 
-def item_grid(experiment: str = "yu_table1") -> list[dict]:
-    """``dslearn-run experiment=<grid>`` as a user runs it (the default launcher), in a subprocess:
-    end-to-end wall time and the largest worker's peak memory, against the previous release."""
+def _timed_cli(args: list[str], dir_key: str) -> tuple[int, float, float]:
+    """``python -m dslearn.run *args`` in a temporary output folder (``dir_key``: ``hydra.run.dir`` or
+    ``hydra.sweep.dir``), timed by a wrapper process: exit code, wall seconds and the largest
+    descendant's peak RSS in MB (``-1, nan, nan`` if the wrapper's report cannot be read)."""
     with tempfile.TemporaryDirectory() as tmp:
         code = ("import resource, subprocess, sys, time; t = time.perf_counter(); "
                 "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); w = time.perf_counter() - t; "
                 "print('RC', r.returncode, 'WALL', w, 'RSS', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); "
                 "print(r.stderr[-2000:] if r.returncode else '')")
-        out = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "dslearn.run", f"experiment={experiment}",
-                              f"hydra.sweep.dir={tmp}/sweep", "print_table=false"], capture_output=True, text=True)
+        out = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "dslearn.run", *args,
+                              f"{dir_key}={tmp}/out", "print_table=false"], capture_output=True, text=True)
     toks = out.stdout.split()
     try:
-        rc, wall, rss = int(toks[1]), float(toks[3]), float(toks[5]) / 1024
+        return int(toks[1]), float(toks[3]), float(toks[5]) / 1024
     except (IndexError, ValueError):
-        rc, wall, rss = -1, float("nan"), float("nan")
+        return -1, float("nan"), float("nan")
+
+
+def item_grid(experiment: str = "yu_table1") -> list[dict]:
+    """``dslearn-run experiment=<grid>`` as a user runs it (the default launcher), in a subprocess:
+    end-to-end wall time and the largest worker's peak memory, against the previous release."""
+    rc, wall, rss = _timed_cli([f"experiment={experiment}"], "hydra.sweep.dir")
     prev = PREVIOUS_RELEASE["grid_s"] if experiment == "yu_table1" else None
     return [dict(workload="speed", item=f"dslearn-run experiment={experiment} (default launcher)" + ("" if rc == 0 else f" (FAILED rc={rc})"),
                  wall_s=wall, reference_s=prev, ratio=None if prev is None else prev / wall, peak_mb=rss,
@@ -340,18 +347,7 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
 
 
 def item_study(args: list[str], label: str) -> list[dict]:
-    with tempfile.TemporaryDirectory() as tmp:
-        code = ("import resource, subprocess, sys, time; t = time.perf_counter(); "
-                "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); w = time.perf_counter() - t; "
-                "print('RC', r.returncode, 'WALL', w, 'RSS', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); "
-                "print(r.stderr[-2000:] if r.returncode else '')")
-        out = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "dslearn.run", *args, f"hydra.run.dir={tmp}/run", "print_table=false"],
-                             capture_output=True, text=True)
-    toks = out.stdout.split()
-    try:
-        rc, wall, rss = int(toks[1]), float(toks[3]), float(toks[5]) / 1024
-    except (IndexError, ValueError):
-        rc, wall, rss = -1, float("nan"), float("nan")
+    rc, wall, rss = _timed_cli(args, "hydra.run.dir")
     return [dict(workload="studies", item=f"dslearn-run {' '.join(args)}" + ("" if rc == 0 else f" (FAILED rc={rc})"), wall_s=wall,
                  peak_mb=rss, reference_note=label)]
 

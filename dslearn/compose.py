@@ -21,8 +21,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from dslearn.errors import ConfigError, check_choice
+from dslearn.types import DTYPES
 
-DTYPES = {"float64": torch.float64, "float32": torch.float32}
 #: config keys that label a part rather than configure it
 LABELS = ("name",)
 

@@ -15,6 +15,9 @@ from torch import Tensor
 
 from dslearn.diagnostics import SESSION, JitterLog, record_jitter  # noqa: F401  (JitterLog: re-exported)
 
+#: the dtype names configs use (root ``dtype``, ``model.factor_dtype``, task dtypes) -> torch dtypes
+DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
 AGENT_DIM = 4
 POS = slice(0, 2)
 VEL = slice(2, 4)

@@ -153,22 +153,22 @@ class OnlineGP(PriorMean, nn.Module):
         self._last = None
 
     def _grow(self) -> None:
-        old = (self.X, self.Xs, self.Xn, self.R, self.V, self.L, self.mask)
-        alpha, n = self._alpha, self.n
+        rows = ("X", "Xs", "Xn", "R", "V", "A", "mask")  # the per-point buffers, copied row-wise
+        old = {k: getattr(self, k) for k in rows}
+        old_L, has_alpha, n = self.L, self._alpha is not None, self.n
         # grow in chunks of 128 rows: every solve runs over the whole buffer, so slack rows cost
         # time at every step (a growth factor of 1.25 wasted up to 56% of a solve); the copy is O(n^2)
         cap = self.X.shape[1] + 128
         self._alloc(cap, factor=False)
-        for new, buf in zip((self.X, self.Xs, self.Xn, self.R, self.V, self.mask), old[:5] + old[6:]):
-            new[:, :n] = buf[:, :n]
+        for k in rows:
+            getattr(self, k)[:, :n] = old[k][:, :n]
         # the new factor written once: the old block, zeros around it, identity below
         self.L = torch.empty(self.num_nodes, cap, cap, dtype=self.factor_dtype_, device=self.device_)
-        self.L[:, :n, :n] = old[5][:, :n, :n]
+        self.L[:, :n, :n] = old_L[:, :n, :n]
         self.L[:, :n, n:] = 0.0
         self.L[:, n:] = 0.0
         self.L[:, n:, n:].diagonal(dim1=-2, dim2=-1).fill_(1.0)
-        if alpha is not None:
-            self.A[:, :n] = alpha
+        if has_alpha:
             self._alpha = self.A[:, :n]
 
     # hyperparameters ---------------------------------------------------------------------
@@ -207,16 +207,12 @@ class OnlineGP(PriorMean, nn.Module):
         self._os = self.outputscale.to(**kw).clone()
         self._noise = self.noise_var.to(**kw).clone()
 
-    def _scale(self) -> Tensor:
-        """(S, 1, 1) lengthscales."""
-        return self._ls
-
     def _cross(self, x: Tensor) -> Tensor:
         r"""``k(X, x) (S, n, N)`` against the stored inputs for ``x (S, N, d)``, zero at invalid points:
         :math:`\|a-b\|^2 = \|a\|^2 + \|b\|^2 - 2 a^T b` on the cached scaled inputs and their norms
         (one ``(S, n, N)`` result, no ``(S, n, d)`` temporary; equals :meth:`kernel`, tested)."""
         n = self.n
-        xs = x / self._scale()
+        xs = x / self._ls
         xn = (xs * xs).sum(-1)  # (S, N)
         d2 = torch.baddbmm(self.Xn[:, :n].unsqueeze(-1) + xn.unsqueeze(-2), self.Xs[:, :n], xs.transpose(-1, -2), alpha=-2.0)
         k = d2.clamp_min_(0.0).mul_(-0.5).exp_().mul_(self._os.reshape(-1, 1, 1))
@@ -224,19 +220,29 @@ class OnlineGP(PriorMean, nn.Module):
 
     def _cache_inputs(self, lo: int, hi: int) -> None:
         """Refresh the scaled inputs and norms of rows ``lo:hi`` (after writing ``X`` or the lengthscale)."""
-        xs = self.X[:, lo:hi] / self._scale()
+        xs = self.X[:, lo:hi] / self._ls
         self.Xs[:, lo:hi] = xs
         self.Xn[:, lo:hi] = (xs * xs).sum(-1)
 
     def _solve_pair(self, rhs: Tensor) -> tuple[Tensor, Tensor]:
         r"""``w = L^{-1} rhs`` and ``b = L^{-T} w = (K + \sigma^2 I)^{-1} rhs`` for ``rhs (S, n, 1)``:
         the prediction's variance solve and the append's, done together at the predicted point."""
-        n, cap = self.n, self.L.shape[-1]
-        full = rhs.new_zeros(rhs.shape[0], cap, 1, dtype=self.L.dtype)
-        full[:, :n] = rhs
-        w = torch.linalg.solve_triangular(self.L, full, upper=False)
-        b = torch.linalg.solve_triangular(self.L.transpose(-1, -2), w, upper=True)
+        n = self.n
+        w = self._tri(self._pad(rhs), upper=False)
+        b = self._tri(w, upper=True)
         return w[:, :n].to(self.dtype_), b[:, :n].to(self.dtype_)
+
+    def _pad(self, rhs: Tensor) -> Tensor:
+        """``rhs (S, n, k)`` as a right-hand side for the whole buffer ``(S, cap, k)`` in the factor's
+        dtype, zero below ``n``: the factor is block-diagonal ``[L_n, 0; 0, I]``, so solving on the
+        whole contiguous buffer is exact (a strided ``n x n`` view takes a much slower path)."""
+        full = rhs.new_zeros(rhs.shape[0], self.L.shape[-1], rhs.shape[-1], dtype=self.L.dtype)
+        full[:, : self.n] = rhs
+        return full
+
+    def _tri(self, full: Tensor, upper: bool) -> Tensor:
+        """``L^{-1} full`` or (``upper``) ``L^{-T} full`` on the whole buffer."""
+        return torch.linalg.solve_triangular(self.L.transpose(-1, -2) if upper else self.L, full, upper=upper)
 
     # online update -----------------------------------------------------------------------
     @torch.no_grad()
@@ -288,18 +294,13 @@ class OnlineGP(PriorMean, nn.Module):
         v = resid / d.unsqueeze(-1)
         # block-inverse update of alpha = K^{-1} R with b = K^{-1} k = L^{-T} l, c = d^2:
         # alpha_old += -b resid / c ; alpha_new = resid / c       (O(n), in place)
-        alpha = self.alpha
+        self.alpha  # A[:, :n] holds alpha of the current data before its in-place update
+        q = resid / (d * d).unsqueeze(-1)
         if n > 0:
             if bvec is None:
-                full = l.new_zeros(s, self.L.shape[-1], 1, dtype=self.L.dtype)
-                full[:, :n, 0] = l
-                bvec = torch.linalg.solve_triangular(self.L.transpose(-1, -2), full, upper=True)[:, :n, 0].to(self.dtype_)
+                bvec = self._tri(self._pad(l.unsqueeze(-1)), upper=True)[:, :n, 0].to(self.dtype_)
             else:
                 bvec = bvec * vcol
-        q = resid / (d * d).unsqueeze(-1)
-        if alpha.data_ptr() != self.A.data_ptr():
-            self.A[:, :n] = alpha
-        if n > 0:
             self.A[:, :n].addcmul_(bvec.unsqueeze(-1), q.unsqueeze(1), value=-1.0)
         self.A[:, n] = q
         self.L[:, n, :n] = l
@@ -315,10 +316,7 @@ class OnlineGP(PriorMean, nn.Module):
 
     def _solve_lower(self, rhs: Tensor) -> Tensor:
         """``L^{-1} rhs`` for ``rhs (S, n, k)``, through the full buffer (rows past n are identity)."""
-        n, cap = self.n, self.L.shape[-1]
-        full = rhs.new_zeros(rhs.shape[0], cap, rhs.shape[-1], dtype=self.L.dtype)
-        full[:, :n] = rhs
-        return torch.linalg.solve_triangular(self.L, full, upper=False)[:, :n].to(self.dtype_)
+        return self._tri(self._pad(rhs), upper=False)[:, : self.n].to(self.dtype_)
 
     @torch.no_grad()
     def refactorize(self) -> None:
@@ -371,18 +369,14 @@ class OnlineGP(PriorMean, nn.Module):
 
     def solve(self, rhs: Tensor) -> Tensor:
         r""":math:`(K + \sigma^2 I)^{-1} \mathrm{rhs}` for ``rhs (S, n, k)`` through the current factor."""
-        n, cap = self.n, self.L.shape[-1]
-        full = rhs.new_zeros(rhs.shape[0], cap, rhs.shape[-1], dtype=self.L.dtype)
-        full[:, :n] = rhs
-        # the factor is block-diagonal [L_n, 0; 0, I]: solving on the whole buffer is exact
-        return torch.cholesky_solve(full, self.L)[:, :n].to(self.dtype_)
+        return torch.cholesky_solve(self._pad(rhs), self.L)[:, : self.n].to(self.dtype_)
 
     @property
     def alpha(self) -> Tensor:
         r""":math:`(K + \sigma^2 I)^{-1} (Y - m(X))`, ``(S, n, Dy)``, cached until the next append."""
         if self._alpha is None:
             n = self.n
-            self.A[:, :n] = torch.linalg.solve_triangular(self.L.transpose(-1, -2), self.V.to(self.L.dtype), upper=True)[:, :n]
+            self.A[:, :n] = self._tri(self.V.to(self.L.dtype), upper=True)[:, :n]
             self._alpha = self.A[:, :n]
         return self._alpha
 
@@ -435,9 +429,7 @@ class OnlineGP(PriorMean, nn.Module):
             var = (kxx - (w * w).sum(-2)).clamp_min(0.0)
         if jacobian:
             # sum_a k_a alpha_a x_a^T  (S, N, Dy, Dx): through the smaller temporary
-            if nq == 1:
-                kax = torch.bmm((alpha * ks).transpose(1, 2), X).unsqueeze(1)
-            elif nq < dx:
+            if nq < dx:
                 kax = (ksT.unsqueeze(-1) * alpha.unsqueeze(1)).transpose(-1, -2) @ X.unsqueeze(1)
             else:  # (S, n, Dy Dx), whatever the number of queries
                 ax = (alpha.unsqueeze(-1) * X.unsqueeze(-2)).flatten(-2)

@@ -98,10 +98,9 @@ class WindowGP(OnlineGP):
     def _drop_oldest(self) -> None:
         n = self.n
         alpha = self.alpha  # (S, n, Dy)
-        e0 = self.L.new_zeros(self.num_nodes, self.L.shape[-1], 1)
+        e0 = self.L.new_zeros(self.num_nodes, n, 1)
         e0[:, 0, 0] = 1.0
-        z = torch.linalg.solve_triangular(self.L, e0, upper=False)
-        col = torch.linalg.solve_triangular(self.L.transpose(-1, -2), z, upper=True)[:, :n, 0]  # K^{-1} e_0
+        col = self._solve_pair(e0)[1][..., 0]  # K^{-1} e_0
         a, b = col[:, :1], col[:, 1:]
         new_alpha = alpha[:, 1:] - b.unsqueeze(-1) * (alpha[:, :1] / a.unsqueeze(-1))
         L2 = chol_update(self.L[:, 1:n, 1:n], self.L[:, 1:n, 0])
@@ -110,15 +109,12 @@ class WindowGP(OnlineGP):
         self.L[:, n - 1, n - 1] = 1.0
         for buf in (self.X, self.Xs, self.Xn, self.R, self.mask):  # with the kernel's cached scaled inputs
             buf[:, : n - 1] = buf[:, 1:n].clone()
-        self.X[:, n - 1] = 0.0
-        self.Xs[:, n - 1] = 0.0
-        self.Xn[:, n - 1] = 0.0
-        self.R[:, n - 1] = 0.0
-        self.mask[:, n - 1] = False
+            buf[:, n - 1] = 0  # the freed row: no point (mask False)
         self.V[:, : n - 1] = L2.transpose(-1, -2) @ new_alpha
         self.V[:, n - 1] = 0.0
         self.n = n - 1
-        self._alpha = new_alpha
+        self.A[:, : n - 1] = new_alpha
+        self._alpha = self.A[:, : n - 1]
         self._last = None
 
     def reset(self) -> None:

@@ -10,10 +10,9 @@ from dslearn.errors import ConfigError, check_choice
 from dslearn.learning.gp import OnlineGP
 from dslearn.learning.sparse import make_online_gp
 from dslearn.models.base import MotionModel
-from dslearn.types import StepContext
+from dslearn.types import DTYPES, StepContext
 
 NOISE_MODES = ("latent", "predictive", "adaptive")
-FACTOR_DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
 class GPMotionModel(MotionModel):
@@ -81,7 +80,7 @@ class GPMotionModel(MotionModel):
     ):
         super().__init__()
         if factor_dtype is not None:
-            check_choice("model.factor_dtype", factor_dtype, tuple(FACTOR_DTYPES))
+            check_choice("model.factor_dtype", factor_dtype, tuple(DTYPES))
             if variant != "exact" or variant_options:
                 raise ConfigError(f"model.factor_dtype={factor_dtype}: only the exact GP (model.variant=exact) has one")
         check_choice("model.noise", noise, NOISE_MODES)
@@ -98,7 +97,7 @@ class GPMotionModel(MotionModel):
         self.variant = variant
         if variant == "exact" and not variant_options:
             self.gp = OnlineGP(num_nodes, state_dim, state_dim, outputscale, lengthscale, noise_std, mean, capacity, dtype, device,
-                               factor_dtype=None if factor_dtype is None else FACTOR_DTYPES[factor_dtype])
+                               factor_dtype=None if factor_dtype is None else DTYPES[factor_dtype])
         else:  # scalable variants (dslearn.learning.sparse): window | sgpr | ssgp
             if fit_every and variant != "exact":
                 raise ConfigError(f"model.fit_every={fit_every}: hyperparameter fitting is only available for model.variant=exact")

@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 from dslearn.data.datasets import run_labels
+from dslearn.reports.tables import save_figure
 
 log = logging.getLogger(__name__)
 
@@ -192,10 +193,7 @@ def _plot_curves(curves: pd.DataFrame, path: Path, labels: dict) -> None:
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("loss (MSE per coordinate, m$^2$)")
     axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def _plot(tab: pd.DataFrame, path: Path, labels: dict) -> None:
@@ -218,7 +216,4 @@ def _plot(tab: pd.DataFrame, path: Path, labels: dict) -> None:
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.suptitle("ETH/UCY leave-one-scene-out, 8 -> 12 steps")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)

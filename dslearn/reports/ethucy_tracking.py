@@ -18,6 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from dslearn.io import atomic_write_csv, atomic_write_text  # noqa: E402
+from dslearn.reports.tables import save_figure  # noqa: E402
 
 ORDER = ["gp", "gp_increment", "gp_cv", "gp_increment_cv", "lin", "sfm", "lstm"]
 COLORS = {"truth": "black", "gp": "tab:blue", "gp_increment": "tab:blue", "gp_cv": "tab:cyan",
@@ -125,11 +126,7 @@ def fig_data_size(tab: pd.DataFrame, out: Path) -> Path | None:
         ax.set_ylabel("prediction error [m]")
         ax.set_title(f"{kind}: {scene}" if kind == "real" else "synthetic (Yu scenario)")
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = Path(out) / "ethucy_fig5_gp_vs_lstm.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, Path(out) / "ethucy_fig5_gp_vs_lstm.png")
 
 
 def fig_trajectories(results: pd.DataFrame, out: Path, max_episodes: int = 3) -> Path | None:
@@ -162,11 +159,7 @@ def fig_trajectories(results: pd.DataFrame, out: Path, max_episodes: int = 3) ->
             ax.set_aspect("equal", adjustable="datalim")
             if i == 0 and j == 0:
                 ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = Path(out) / "ethucy_fig4_trajectories.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, Path(out) / "ethucy_fig4_trajectories.png")
 
 
 def real_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:

@@ -1,4 +1,4 @@
-"""Formatting shared by the reports: Markdown tables, the sensor-average label."""
+"""Formatting shared by the reports: Markdown tables, figure files, the sensor-average label."""
 
 from __future__ import annotations
 
@@ -8,6 +8,18 @@ import pandas as pd
 
 #: the row label of the average over the sensing nodes
 AVG_LABEL = "sensor average"
+
+
+def save_figure(fig, path: Path, dpi: int = 120) -> Path:
+    """Lay out ``fig``, write it to ``path`` (creating its folder) and close it; return ``path``."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
 
 
 def markdown(df: pd.DataFrame) -> str:

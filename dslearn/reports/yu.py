@@ -14,6 +14,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from dslearn.reports.tables import save_figure  # noqa: E402
+
 
 MODEL_ORDER = ["gp", "gp_increment", "lin", "sfm"]
 
@@ -116,11 +118,7 @@ def fig_training(summary: pd.DataFrame, out: Path) -> Path | None:
     axes[1].set_xlabel("consensus iterations L")
     axes[1].set_ylabel(f"tracking error [m] after {int(s['train_seen'].max())} episodes")
     axes[1].legend(fontsize=7)
-    fig.tight_layout()
-    path = out / "yu_fig2.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / "yu_fig2.png")
 
 
 def yu_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:

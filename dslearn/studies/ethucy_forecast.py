@@ -63,13 +63,13 @@ from dslearn.data.datasets import leave_one_out, load_dataset, task_datasets
 from dslearn.data.ethucy import split_scene, windows
 from dslearn.data.window_tensors import cat_windows, per_agent, quads, subsample
 from dslearn.errors import ConfigError
+from dslearn.types import DTYPES
 from dslearn.forecast import ade_fde, constant_velocity, gp_forecaster
 from dslearn.learning.lstm import train_forecast_lstm
 
 log = logging.getLogger(__name__)
 
 PREDICTORS = ("cv", "lstm", "social_lstm", "gp", "gp_state")
-DTYPES = {"float64": torch.float64, "float32": torch.float32}
 LSTM_MODELS = ("lstm", "social_lstm")
 CURVE_COLUMNS = ["scene", "fold", "model", "epoch", "train_loss", "val_loss", "lr", "best", "seconds"]
 

@@ -24,6 +24,7 @@ import torch
 from dslearn.compose import build
 from dslearn.filters.dgpt import HyperConfig, hyper_summary, track
 from dslearn.schemas.base import to_plain
+from dslearn.types import DTYPES
 from dslearn.schemas.liu_dgpt import selected_scenario
 from dslearn.sim.manoeuvres import SCENARIOS, measure, sensor_field
 
@@ -99,7 +100,7 @@ def _method_keys(methods):
 def run(cfg) -> pd.DataFrame:
     """Run the DGPT study grid of ``cfg`` (checked by :func:`dslearn.schemas.validate_task`)."""
     p = plan(cfg)
-    dtype = {"float64": torch.float64, "float32": torch.float32}[str(cfg.get("dtype", "float64"))]
+    dtype = DTYPES[str(cfg.get("dtype", "float64"))]
     old_threads = torch.get_num_threads()
     if p["torch_threads"] is not None:
         torch.set_num_threads(p["torch_threads"])
