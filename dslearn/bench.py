@@ -8,8 +8,9 @@ reports the ratio ``reference / fast``.
 Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
 
   speed      the speed targets: one GP consensus configuration (gp / hybrid, 200 + 50 episodes,
-             one thread) with its Cholesky factor in float64 and in float32, in one process,
-             against the previous release's figure (:data:`PREVIOUS_RELEASE`); then
+             one thread) as configured (the inverse factor in float64), then with the Cholesky
+             factor (the previous algorithm) and with the inverse factor in float32, in one
+             process, against the previous release's figure (:data:`PREVIOUS_RELEASE`); then
              ``dslearn-run experiment=yu_table1`` end to end with the default launcher.
 
   reference  Yu protocol, fast path vs the straightforward reference (per-node loops, GPyTorch
@@ -147,33 +148,38 @@ def item_protocol(model: str, fusion: str, train: int, test: int, device: str = 
 
 
 def item_speed_config(train: int, test: int, model: str = "gp", fusion: str = "hybrid") -> list[dict]:
-    """One GP consensus configuration, single-threaded, its factor in float64 then float32 in this
-    same process: wall time of the run, the ratio to the previous release's figure and between the
-    two factor precisions, and the largest change of any result value."""
+    """One GP consensus configuration, single-threaded, in this same process: as configured (the
+    inverse factor in float64, ``model.factor=auto``), with the Cholesky factor (the previous
+    algorithm: two triangular solves per step), and with the inverse factor in float32. Wall time
+    of each run, the default's ratio to the previous release's figure, each variant's ratio to the
+    default, and the largest change of any result value against the default."""
     from dslearn.studies.yu import YuStudy
 
     rows, runs = [], {}
-    for fd in ("float64", "float32"):
+    full = (train, test) == (200, 50)
+    for form, fd in (("auto", "float64"), ("cholesky", "float64"), ("auto", "float32")):
         cfg = _compose([f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}",
-                        f"data.test_episodes={test}", f"model.factor_dtype={fd}"])
+                        f"data.test_episodes={test}", f"model.factor_dtype={fd}", f"model.factor={form}"])
         study = YuStudy.from_config(cfg)
         t0 = time.perf_counter()
         df = study.run()
         wall = time.perf_counter() - t0
-        runs[fd] = (wall, df)
         sens = df[df["node_kind"] == "sensor"]
-        full = (train, test) == (200, 50)
-        prev = PREVIOUS_RELEASE["config_s"] if full and fd == "float64" else None
-        rows.append(dict(workload="speed", item=f"one configuration {model}/{fusion} {train}+{test} ep, factor {fd}",
-                         nodes=10, wall_s=wall, reference_s=prev, ratio=None if prev is None else prev / wall,
-                         track_err=float(sens[sens.metric == "track_err"]["value"].mean()),
-                         pred_err=float(sens[sens.metric == "pred_err"]["value"].mean()), peak_mb=_peak_mb(),
-                         reference_note=(f"previous release {PREVIOUS_RELEASE['release']}: {prev} s" if prev else "")))
-    (w64, a), (w32, b) = runs["float64"], runs["float32"]
-    diff = (a["value"].to_numpy() - b["value"].to_numpy())
-    rel = float(abs(diff).max() / max(abs(a["value"].to_numpy()).max(), 1e-300))
-    rows[-1].update(reference_s=w64, ratio=w64 / w32, max_abs_diff=float(abs(diff).max()),
-                    reference_note=f"float64 factor in this process: {w64:.1f} s; largest relative change {rel:.1e}")
+        row = dict(workload="speed", item=f"one configuration {model}/{fusion} {train}+{test} ep, factor {form} {fd}",
+                   nodes=10, wall_s=wall, track_err=float(sens[sens.metric == "track_err"]["value"].mean()),
+                   pred_err=float(sens[sens.metric == "pred_err"]["value"].mean()), peak_mb=_peak_mb())
+        if not runs:  # the default: against the previous release
+            prev = PREVIOUS_RELEASE["config_s"] if full else None
+            row.update(reference_s=prev, ratio=None if prev is None else prev / wall,
+                       reference_note=f"previous release {PREVIOUS_RELEASE['release']}: {prev} s" if prev else "")
+        else:  # a variant: against the default in this process
+            w0, d0 = runs[("auto", "float64")]
+            diff = df["value"].to_numpy() - d0["value"].to_numpy()
+            rel = float(abs(diff).max() / max(abs(d0["value"].to_numpy()).max(), 1e-300))
+            row.update(reference_s=w0, ratio=w0 / wall, max_abs_diff=float(abs(diff).max()),
+                       reference_note=f"the default in this process: {w0:.1f} s; largest relative change {rel:.1e}")
+        runs[(form, fd)] = (wall, df)
+        rows.append(row)
     return rows
 
 

@@ -34,14 +34,15 @@ def test_fast_study_equals_reference(model, consensus, train):
     np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-9)
 
 
-def test_append_equals_refit_through_buffer_growth():
+@pytest.mark.parametrize("factor,cap", [("cholesky", 392), ("inverse", 396)])
+def test_append_equals_refit_through_buffer_growth(factor, cap):
     g = torch.Generator().manual_seed(0)
-    gp = OnlineGP(3, 4, 4, outputscale=1.1, lengthscale=1.4, noise_std=0.3, capacity=8)
+    gp = OnlineGP(3, 4, 4, outputscale=1.1, lengthscale=1.4, noise_std=0.3, capacity=8, factor=factor)
     X = 1.5 * torch.randn(300, 3, 4, generator=g, dtype=D)
-    for i in range(300):  # grows 8 -> 136 -> 264 -> 392 rows
+    for i in range(300):  # cholesky grows by 128 rows (8 -> 136 -> 264 -> 392), inverse by half (... 264 -> 396)
         gp.predict(X[i].unsqueeze(1))  # the solve reused by append
         gp.append(X[i], torch.sin(X[i]), torch.tensor([True, i % 3 != 0, True]))
-    assert gp.L.shape[-1] == 392
+    assert gp.L.shape[-1] == cap
     alpha, L = gp.alpha.clone(), gp.L[:, : gp.n, : gp.n].clone()
     xq = torch.randn(3, 4, 4, generator=g, dtype=D)
     m1, v1, j1 = gp.predict(xq)

@@ -22,12 +22,14 @@ import gpytorch
 import torch
 from torch import Tensor, nn
 
+from dslearn.learning import inverse_factor
 from dslearn.learning.means import NAMED, PriorMeanModule
 from dslearn.errors import ConfigError, check_choice, check_positive
 from dslearn.diagnostics import record_jitter
 from dslearn.types import StepContext, safe_cholesky
 
 MEANS = ("zero", "constant", "identity")
+FACTORS = ("auto", "inverse", "cholesky")
 
 
 def _same_input(a: Tensor, b: Tensor, version: int) -> bool:
@@ -90,10 +92,17 @@ class OnlineGP(PriorMean, nn.Module):
             (``m(x) = x[..., :Dy]``, so the GP learns the increment); or a module of
             :mod:`dslearn.learning.means` (e.g. ``ConstantVelocityMean(dt)``).
         capacity: initial buffer size (grows in chunks of 128 rows).
-        factor_dtype: storage of the Cholesky factor (default ``dtype``). ``torch.float32`` halves
-            the memory every step streams (the triangular solves are bound by it) while kernel
-            values, targets, ``alpha`` and the diagonal stay in ``dtype``; the accuracy cost on the
-            Yu tables is measured in the README.
+        factor_dtype: storage of the factor (default ``dtype``). ``torch.float32`` halves
+            the memory every step streams (the step is bound by it) while kernel values, targets,
+            ``alpha`` and the diagonal stay in ``dtype``; the accuracy cost on the Yu tables is
+            measured in the README.
+        factor: what the buffer ``L`` holds. ``cholesky``: the factor :math:`L` of
+            :math:`K + \sigma^2 I`; a prediction and the append after it cost a forward and a
+            backward triangular solve, two passes over the factor. ``inverse``: :math:`L^{-1}`,
+            extended by one row per append; the same step is one pass
+            (:mod:`dslearn.learning.inverse_factor`). ``auto`` (default): ``inverse`` on the CPU
+            where its compiled kernel is available, ``cholesky`` otherwise (CUDA, whose path
+            was measured with the solves).
     """
 
     def __init__(
@@ -109,8 +118,10 @@ class OnlineGP(PriorMean, nn.Module):
         dtype: torch.dtype = torch.float64,
         device: str | torch.device = "cpu",
         factor_dtype: torch.dtype | None = None,
+        factor: str = "auto",
     ):
         super().__init__()
+        check_choice("model.factor", factor, FACTORS)
         check_positive("model.outputscale", outputscale)
         check_positive("model.lengthscale", lengthscale)
         check_positive("model.noise_std", noise_std)
@@ -126,6 +137,8 @@ class OnlineGP(PriorMean, nn.Module):
         self.to(dtype=dtype, device=device)
         self.dtype_, self.device_ = dtype, torch.device(device)
         self.factor_dtype_ = dtype if factor_dtype is None else factor_dtype
+        self.inverse = factor == "inverse" or (
+            factor == "auto" and self.device_.type == "cpu" and inverse_factor.HAVE_KERNEL)
         self.n = 0
         self.clamped = torch.zeros((), dtype=torch.long, device=self.device_)  # clamped diagonals (CUDA)
         self._snapshot_hypers()
@@ -143,8 +156,9 @@ class OnlineGP(PriorMean, nn.Module):
         self.R = torch.zeros(s, cap, o, **kw)  # residual targets y - m(x)
         self.V = torch.zeros(s, cap, o, **kw)  # L^{-1} R
         self.A = torch.zeros(s, cap, o, **kw)  # alpha = K^{-1} R, updated in place by append
-        # Cholesky factor of K + sigma^2 I in the top-left n x n block, identity below: solves
-        # run on the whole contiguous buffer (a strided n x n view takes a ~20x slower path)
+        # Cholesky factor of K + sigma^2 I (or its inverse) in the top-left n x n block, identity
+        # below: solves run on the whole contiguous buffer (a strided n x n view takes a ~20x
+        # slower path)
         if factor:
             self.L = torch.zeros(s, cap, cap, dtype=self.factor_dtype_, device=self.device_)
             self.L.diagonal(dim1=-2, dim2=-1).fill_(1.0)
@@ -152,13 +166,23 @@ class OnlineGP(PriorMean, nn.Module):
         self._alpha = None
         self._last = None
 
-    def _grow(self) -> None:
+    def reserve(self, points: int) -> None:
+        """Room for ``points`` more examples per node, allocated once. Only the inverse factor
+        takes it: its pass reads the first ``n`` rows, so unused rows cost memory, not time (every
+        Cholesky solve runs over the whole buffer, which grows as it fills instead)."""
+        if self.inverse and self.n + int(points) > self.X.shape[1]:
+            self._grow(self.n + int(points))
+
+    def _grow(self, cap: int | None = None) -> None:
         rows = ("X", "Xs", "Xn", "R", "V", "A", "mask")  # the per-point buffers, copied row-wise
         old = {k: getattr(self, k) for k in rows}
-        old_L, has_alpha, n = self.L, self._alpha is not None, self.n
-        # grow in chunks of 128 rows: every solve runs over the whole buffer, so slack rows cost
-        # time at every step (a growth factor of 1.25 wasted up to 56% of a solve); the copy is O(n^2)
-        cap = self.X.shape[1] + 128
+        old_L, has_alpha, n, last = self.L, self._alpha is not None, self.n, self._last
+        # Cholesky: grow in chunks of 128 rows, as every solve runs over the whole buffer and slack
+        # rows cost time at every step (a growth factor of 1.25 wasted up to 56% of a solve). The
+        # inverse factor's pass reads only the first n rows: grow by half (fewer O(n^2) copies)
+        old_cap = self.X.shape[1]
+        if cap is None:
+            cap = old_cap + (max(128, old_cap // 2) if self.inverse else 128)
         self._alloc(cap, factor=False)
         for k in rows:
             getattr(self, k)[:, :n] = old[k][:, :n]
@@ -170,6 +194,7 @@ class OnlineGP(PriorMean, nn.Module):
         self.L[:, n:, n:].diagonal(dim1=-2, dim2=-1).fill_(1.0)
         if has_alpha:
             self._alpha = self.A[:, :n]
+        self._last = last  # a prediction's solves stay valid: the factor is the same
 
     # hyperparameters ---------------------------------------------------------------------
     @property
@@ -226,11 +251,30 @@ class OnlineGP(PriorMean, nn.Module):
 
     def _solve_pair(self, rhs: Tensor) -> tuple[Tensor, Tensor]:
         r"""``w = L^{-1} rhs`` and ``b = L^{-T} w = (K + \sigma^2 I)^{-1} rhs`` for ``rhs (S, n, 1)``:
-        the prediction's variance solve and the append's, done together at the predicted point."""
+        the prediction's variance solve and the append's, done together at the predicted point
+        (one pass over the inverse factor, or two triangular solves)."""
         n = self.n
+        if self.inverse:
+            w, b = inverse_factor.pair(self.L, rhs[..., 0], n)
+            return w.unsqueeze(-1), b.unsqueeze(-1)
         w = self._tri(self._pad(rhs), upper=False)
         b = self._tri(w, upper=True)
         return w[:, :n].to(self.dtype_), b[:, :n].to(self.dtype_)
+
+    def _inverse_mm(self, rhs: Tensor, transpose: bool = False) -> Tensor:
+        """``M rhs`` (or ``M^T rhs``) for the inverse factor ``M`` and ``rhs (S, n, k)``, in ``dtype``:
+        products over blocks of 256 rows that skip the zero upper triangle (a full product does
+        twice the work and measured three times slower)."""
+        n, M = self.n, self.L
+        rhs = rhs.to(M.dtype)
+        out = rhs.new_zeros(rhs.shape) if transpose else rhs.new_empty(rhs.shape)
+        for i0 in range(0, n, 256):
+            i1 = min(n, i0 + 256)
+            if transpose:
+                out[:, :i1] += M[:, i0:i1, :i1].transpose(-1, -2) @ rhs[:, i0:i1]
+            else:
+                out[:, i0:i1] = M[:, i0:i1, :i1] @ rhs[:, :i1]
+        return out.to(self.dtype_)
 
     def _pad(self, rhs: Tensor) -> Tensor:
         """``rhs (S, n, k)`` as a right-hand side for the whole buffer ``(S, cap, k)`` in the factor's
@@ -273,10 +317,14 @@ class OnlineGP(PriorMean, nn.Module):
         if n > 0 and last is not None and last[2] == n and _same_input(last[0], xs, last[3]):
             l, bvec = last[1], last[4]  # the solves done by predict() at this very input
             self._streaming, self._pending = True, False
-        elif n > 0:
-            l = self._solve_lower(self._cross(xs)).squeeze(-1)
+            if bvec is None and self.inverse:  # predicted without the pair: one pass for both
+                l = None
         else:
-            l = x.new_zeros(s, 0)
+            l = None if n > 0 else x.new_zeros(s, 0)
+        if l is None and self.inverse:
+            l, bvec = (t[..., 0] for t in self._solve_pair(self._cross(xs)))
+        elif l is None:
+            l = self._solve_lower(self._cross(xs)).squeeze(-1)
         d2 = kxx + noise - (l * l).sum(-1)
         floor = 1e-10 * (kxx + noise)
         if self.device_.type == "cpu":  # on CUDA no host round-trip: clamp silently (counted on device)
@@ -303,8 +351,13 @@ class OnlineGP(PriorMean, nn.Module):
                 bvec = bvec * vcol
             self.A[:, :n].addcmul_(bvec.unsqueeze(-1), q.unsqueeze(1), value=-1.0)
         self.A[:, n] = q
-        self.L[:, n, :n] = l
-        self.L[:, n, n] = d
+        if self.inverse:  # the new row of L^{-1}: [-b^T, 1] / d
+            if n > 0:
+                self.L[:, n, :n] = -bvec / d.unsqueeze(-1)
+            self.L[:, n, n] = 1.0 / d
+        else:
+            self.L[:, n, :n] = l
+            self.L[:, n, n] = d
         self.X[:, n] = torch.where(vcol, x, torch.zeros_like(x))
         self._cache_inputs(n, n + 1)
         self.R[:, n] = r
@@ -315,8 +368,14 @@ class OnlineGP(PriorMean, nn.Module):
         self._last = None
 
     def _solve_lower(self, rhs: Tensor) -> Tensor:
-        """``L^{-1} rhs`` for ``rhs (S, n, k)``, through the full buffer (rows past n are identity)."""
-        return self._tri(self._pad(rhs), upper=False)[:, : self.n].to(self.dtype_)
+        """``L^{-1} rhs`` for ``rhs (S, n, k)``: a solve through the full buffer (rows past n are
+        identity), or a product with the inverse factor."""
+        n = self.n
+        if self.inverse:
+            if rhs.shape[-1] == 1:
+                return inverse_factor.pair(self.L, rhs[..., 0], n, need_b=False)[0].unsqueeze(-1)
+            return self._inverse_mm(rhs)
+        return self._tri(self._pad(rhs), upper=False)[:, :n].to(self.dtype_)
 
     @torch.no_grad()
     def refactorize(self) -> None:
@@ -333,8 +392,14 @@ class OnlineGP(PriorMean, nn.Module):
         diag = torch.where(m, self.noise_var.unsqueeze(-1).expand(-1, n), torch.zeros_like(K[..., 0]))
         K = K + torch.diag_embed(diag)
         K = K + torch.diag_embed((~m).to(K.dtype))  # decoupled unit rows for invalid points
-        self.L[:, :n, :n] = safe_cholesky(K)  # in dtype, stored in factor_dtype
-        self.V[:, :n] = self._solve_lower(self.R[:, :n])
+        L = safe_cholesky(K)  # in dtype, stored in factor_dtype
+        if self.inverse:
+            self.V[:, :n] = torch.linalg.solve_triangular(L, self.R[:, :n], upper=False)
+            eye = torch.eye(n, dtype=L.dtype, device=L.device).expand_as(L)
+            self.L[:, :n, :n] = torch.linalg.solve_triangular(L, eye, upper=False)
+        else:
+            self.L[:, :n, :n] = L
+            self.V[:, :n] = self._solve_lower(self.R[:, :n])
         self._alpha = None
 
     def reset(self) -> None:
@@ -369,6 +434,8 @@ class OnlineGP(PriorMean, nn.Module):
 
     def solve(self, rhs: Tensor) -> Tensor:
         r""":math:`(K + \sigma^2 I)^{-1} \mathrm{rhs}` for ``rhs (S, n, k)`` through the current factor."""
+        if self.inverse:
+            return self._inverse_mm(self._inverse_mm(rhs), transpose=True)
         return torch.cholesky_solve(self._pad(rhs), self.L)[:, : self.n].to(self.dtype_)
 
     @property
@@ -376,7 +443,10 @@ class OnlineGP(PriorMean, nn.Module):
         r""":math:`(K + \sigma^2 I)^{-1} (Y - m(X))`, ``(S, n, Dy)``, cached until the next append."""
         if self._alpha is None:
             n = self.n
-            self.A[:, :n] = self._tri(self.V.to(self.L.dtype), upper=True)[:, :n]
+            if self.inverse:
+                self.A[:, :n] = self._inverse_mm(self.V[:, :n], transpose=True)
+            else:
+                self.A[:, :n] = self._tri(self.V.to(self.L.dtype), upper=True)[:, :n]
             self._alpha = self.A[:, :n]
         return self._alpha
 
@@ -429,7 +499,9 @@ class OnlineGP(PriorMean, nn.Module):
             var = (kxx - (w * w).sum(-2)).clamp_min(0.0)
         if jacobian:
             # sum_a k_a alpha_a x_a^T  (S, N, Dy, Dx): through the smaller temporary
-            if nq < dx:
+            if nq == 1:  # (k * alpha)^T X: an (S, n, Dy) temporary
+                kax = ((ks * alpha).transpose(-1, -2) @ X).unsqueeze(1)
+            elif nq < dx:
                 kax = (ksT.unsqueeze(-1) * alpha.unsqueeze(1)).transpose(-1, -2) @ X.unsqueeze(1)
             else:  # (S, n, Dy Dx), whatever the number of queries
                 ax = (alpha.unsqueeze(-1) * X.unsqueeze(-2)).flatten(-2)

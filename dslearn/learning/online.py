@@ -58,7 +58,11 @@ class OnlineLearner:
 
     def run(self, train: Measurements, checkpoints: list[int], evaluate: Callable[[int], pd.DataFrame],
             before: Callable[[int], None] | None = None, on_episode: Callable[[], None] | None = None) -> pd.DataFrame:
-        """:func:`algorithm1` with this learner's :meth:`learn` on ``train``'s episodes."""
+        """:func:`algorithm1` with this learner's :meth:`learn` on ``train``'s episodes. The motion
+        model is told beforehand how many examples will come (one per step of every episode to
+        learn), so that its data set is allocated once."""
+        if self.learnable and self.model.learnable and checkpoints:
+            self.model.reserve(min(max(checkpoints), len(train)) * train.steps)
         def learn(i: int) -> None:
             if before is not None:
                 before(i)

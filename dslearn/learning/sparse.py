@@ -78,9 +78,11 @@ class WindowGP(OnlineGP):
         if not isinstance(window, int) or window < 2:
             raise ConfigError(f"model.window={window!r} must be an integer >= 2")
         kw.pop("capacity", None)
+        if kw.pop("factor", "cholesky") not in ("auto", "cholesky"):
+            raise ConfigError("model.factor: the window GP removes points through its Cholesky factor (choose auto or cholesky)")
         if kw.get("factor_dtype") not in (None, kw.get("dtype", torch.float64)):
             raise ConfigError("model.factor_dtype: the window GP keeps its factor in the run's dtype (choose null)")
-        super().__init__(num_nodes, input_dim, output_dim, capacity=window + 1, **kw)
+        super().__init__(num_nodes, input_dim, output_dim, capacity=window + 1, factor="cholesky", **kw)
         self.window = int(window)
         self.seen = 0
 

@@ -87,6 +87,9 @@ class AggregatedGPMotion(MotionModel):
     def add_data(self, inputs: Tensor, outputs: Tensor, valid: Tensor | None = None) -> None:
         self.base.add_data(inputs, outputs, valid)
 
+    def reserve(self, appends: int) -> None:
+        self.base.reserve(appends)
+
     def fit(self) -> "AggregatedGPMotion":
         self.base.fit()
         return self

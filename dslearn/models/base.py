@@ -62,6 +62,10 @@ class MotionModel(nn.Module, abc.ABC):
     def add_data(self, inputs: Tensor, outputs: Tensor, valid: Tensor | None = None) -> None:
         """Append input/output examples ``(S, Dx)`` (one per node). No-op for fixed models."""
 
+    def reserve(self, appends: int) -> None:
+        """Make room for ``appends`` more :meth:`add_data` calls before they come (a learner that
+        knows its protocol says so once; the data set then does not regrow). No-op by default."""
+
     def fit(self) -> "MotionModel":
         """Fit hyperparameters to the current data (marginal likelihood). No-op by default."""
         return self

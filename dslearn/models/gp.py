@@ -7,7 +7,7 @@ import torch
 from torch import Tensor
 
 from dslearn.errors import ConfigError, check_choice
-from dslearn.learning.gp import OnlineGP
+from dslearn.learning.gp import FACTORS, OnlineGP
 from dslearn.learning.sparse import make_online_gp
 from dslearn.models.base import MotionModel
 from dslearn.types import DTYPES, StepContext
@@ -42,8 +42,11 @@ class GPMotionModel(MotionModel):
             episodes (0 = never, the paper's fixed hyperparameters).
         noise_fading: fading factor ``b`` in (0, 1) of the ``adaptive`` noise estimate, per training
             episode (a memory of about ``1/(1-b)`` episodes).
-        factor_dtype: ``null`` (the run's dtype) or ``float32``: the exact GP's Cholesky factor in
+        factor_dtype: ``null`` (the run's dtype) or ``float32``: the exact GP's factor in
             single precision, everything else in the run's dtype (:class:`OnlineGP`).
+        factor: ``auto``, ``inverse`` or ``cholesky``: whether the exact GP keeps the inverse
+            Cholesky factor (one pass over memory per learning step) or the factor itself
+            (two triangular solves); ``auto`` takes the inverse on the CPU (:class:`OnlineGP`).
         variant: ``exact`` (:class:`OnlineGP`) or a scalable variant of
             :mod:`dslearn.learning.sparse`: ``window`` (option ``window``), ``sgpr`` (``inducing``),
             ``ssgp`` (``features``, ``seed``); options are passed as keywords.
@@ -76,6 +79,7 @@ class GPMotionModel(MotionModel):
         variant: str = "exact",
         noise_fading: float = 0.9,
         factor_dtype: str | None = None,
+        factor: str = "auto",
         **variant_options,
     ):
         super().__init__()
@@ -83,6 +87,9 @@ class GPMotionModel(MotionModel):
             check_choice("model.factor_dtype", factor_dtype, tuple(DTYPES))
             if variant != "exact" or variant_options:
                 raise ConfigError(f"model.factor_dtype={factor_dtype}: only the exact GP (model.variant=exact) has one")
+        check_choice("model.factor", factor, FACTORS)
+        if factor != "auto" and (variant != "exact" or variant_options):
+            raise ConfigError(f"model.factor={factor}: only the exact GP (model.variant=exact) has one (choose auto)")
         check_choice("model.noise", noise, NOISE_MODES)
         if not 0.0 < float(noise_fading) < 1.0:
             raise ConfigError(f"model.noise_fading={noise_fading!r} must be in (0, 1)")
@@ -97,7 +104,7 @@ class GPMotionModel(MotionModel):
         self.variant = variant
         if variant == "exact" and not variant_options:
             self.gp = OnlineGP(num_nodes, state_dim, state_dim, outputscale, lengthscale, noise_std, mean, capacity, dtype, device,
-                               factor_dtype=None if factor_dtype is None else DTYPES[factor_dtype])
+                               factor_dtype=None if factor_dtype is None else DTYPES[factor_dtype], factor=factor)
         else:  # scalable variants (dslearn.learning.sparse): window | sgpr | ssgp
             if fit_every and variant != "exact":
                 raise ConfigError(f"model.fit_every={fit_every}: hyperparameter fitting is only available for model.variant=exact")
@@ -200,6 +207,10 @@ class GPMotionModel(MotionModel):
 
     def add_data(self, inputs: Tensor, outputs: Tensor, valid: Tensor | None = None) -> None:
         self.gp.append(inputs, outputs, valid)
+
+    def reserve(self, appends: int) -> None:
+        if hasattr(self.gp, "reserve"):  # the exact GP (one point per node per append)
+            self.gp.reserve(appends)
 
     def fit(self) -> "GPMotionModel":
         self.gp.fit(self.fit_iters, self.fit_lr)

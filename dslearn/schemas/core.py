@@ -134,6 +134,7 @@ class ModelSchema(PartSchema):
     fit_lr: Optional[float] = None
     capacity: Optional[int] = None
     factor_dtype: Optional[str] = None  # exact GP: null (the run's dtype) | float32 (the Cholesky factor)
+    factor: Optional[str] = None  # exact GP: auto | inverse | cholesky (what the factor buffer holds)
     # scalable variants (dslearn.learning.sparse)
     variant: Optional[str] = None
     window: Optional[int] = None
@@ -486,6 +487,10 @@ def validate_core(cfg: DictConfig) -> None:
         check_choice("model.jacobian", m.jacobian, ("closed_form", "autograd"))
     if m.factor_dtype is not None:
         check_choice("model.factor_dtype", m.factor_dtype, ("float64", "float32"))
+    if m.factor is not None:
+        from dslearn.learning.gp import FACTORS
+
+        check_choice("model.factor", m.factor, FACTORS)
     # observation
     check_choice("observation.name", ob.name, ("linear", "gp"))
     check_positive("observation.noise_std", ob.noise_std)
