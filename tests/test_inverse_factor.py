@@ -41,6 +41,16 @@ def test_pair_equals_dense_products_and_reads_only_the_lower_triangle(n):
     assert none is None and torch.equal(w_only, w)
 
 
+def test_pair_of_a_zero_right_hand_side_is_zero_without_reading_the_factor():
+    M, k = _lower(3, 20, 17)
+    k[1] = 0.0  # node 1 has learnt nothing valid: its row of k is zero
+    M[1] = float("nan")  # ... and its factor is not read
+    w, b = inverse_factor.pair(M, k, 17)
+    assert torch.equal(w[1], torch.zeros(17, dtype=D)) and torch.equal(b[1], torch.zeros(17, dtype=D))
+    ref = inverse_factor.pair(torch.nan_to_num(M, nan=0.0), k, 17)
+    assert torch.equal(w[[0, 2]], ref[0][[0, 2]]) and torch.equal(b[[0, 2]], ref[1][[0, 2]])
+
+
 def test_pair_with_a_float32_factor_accumulates_in_the_right_hand_sides_dtype():
     M, k = _lower(2, 40, 33, dtype=torch.float32)
     w, b = inverse_factor.pair(M, k, 33)

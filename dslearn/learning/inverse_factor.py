@@ -12,8 +12,9 @@ step streams from memory, and appending a point writes one row (no solve).
 
 :func:`pair` runs that sweep: on the CPU through a compiled kernel (numba, sixteen rows at a time
 so that each row is read from memory once and reused from cache, and sixteen rows
-stream at once), elsewhere, or without numba,
-through two batched products (:func:`pair_torch`, the reference the kernel is tested against).
+stream at once; a node whose ``k`` is zero, one that has learnt nothing valid yet, is skipped),
+elsewhere, or without numba, through two batched products (:func:`pair_torch`, the reference
+the kernel is tested against).
 """
 
 from __future__ import annotations
@@ -41,6 +42,15 @@ if HAVE_KERNEL:
             bs = b[s]
             for j in range(n):
                 bs[j] = 0.0
+            nonzero = False
+            for j in range(n):
+                if ks[j] != 0.0:
+                    nonzero = True
+                    break
+            if not nonzero:  # k = 0 (a node whose points are all invalid): w = b = 0, no pass
+                for j in range(n):
+                    ws[j] = 0.0
+                continue
             i = 0
             while i + 16 <= n:
                 r0 = Ms[i]
