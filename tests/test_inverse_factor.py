@@ -174,3 +174,18 @@ def test_a_copied_gp_keeps_streaming():
         m.predict(x.unsqueeze(1))
         m.append(x, x)
     assert torch.equal(gp.alpha, twin.alpha)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_inverse_factor_on_cuda_equals_the_cpu_kernel():
+    """model.factor=inverse on CUDA (torch products, no compiled kernel) against the CPU kernel."""
+    g = torch.Generator().manual_seed(5)
+    X = 1.5 * torch.randn(80, 3, 4, generator=g, dtype=D)
+    gps = [OnlineGP(3, 4, 4, mean="identity", capacity=8, factor="inverse", device=dev) for dev in ("cpu", "cuda")]
+    for i in range(80):
+        for gp in gps:
+            gp.predict(X[i].unsqueeze(1).to(gp.device_))
+            gp.append(X[i].to(gp.device_), torch.sin(X[i]).to(gp.device_))
+    xq = torch.randn(3, 5, 4, generator=g, dtype=D)
+    for u, v in zip(gps[0].predict(xq), gps[1].predict(xq.cuda())):
+        assert torch.allclose(u, v.cpu(), atol=1e-11)
