@@ -91,7 +91,8 @@ class OnlineGP(PriorMean, nn.Module):
         mean: prior mean: ``zero``; ``constant`` (learned by :meth:`fit`); ``identity``
             (``m(x) = x[..., :Dy]``, so the GP learns the increment); or a module of
             :mod:`dslearn.learning.means` (e.g. ``ConstantVelocityMean(dt)``).
-        capacity: initial buffer size (grows in chunks of 128 rows).
+        capacity: initial buffer size (grows in chunks of 128 rows with the Cholesky factor, by
+            half with the inverse one; :meth:`reserve` allocates a known total at once).
         factor_dtype: storage of the factor (default ``dtype``). ``torch.float32`` halves
             the memory every step streams (the step is bound by it) while kernel values, targets,
             ``alpha`` and the diagonal stay in ``dtype``; the accuracy cost on the Yu tables is
