@@ -315,16 +315,15 @@ class OnlineGP(PriorMean, nn.Module):
         xs = x.unsqueeze(1)
         kxx, noise = self._os, self._noise  # k(x, x) = sigma_f^2 for the RBF kernel
         last, bvec = self._last, None
-        if n > 0 and last is not None and last[2] == n and _same_input(last[0], xs, last[3]):
+        reuse = n > 0 and last is not None and last[2] == n and _same_input(last[0], xs, last[3])
+        if reuse:
             l, bvec = last[1], last[4]  # the solves done by predict() at this very input
             self._streaming, self._pending = True, False
-            if bvec is None and self.inverse:  # predicted without the pair: one pass for both
-                l = None
-        else:
-            l = None if n > 0 else x.new_zeros(s, 0)
-        if l is None and self.inverse:
+        if n == 0:
+            l = x.new_zeros(s, 0)
+        elif self.inverse and bvec is None:  # no paired pass to reuse: one pass gives both
             l, bvec = (t[..., 0] for t in self._solve_pair(self._cross(xs)))
-        elif l is None:
+        elif not reuse:
             l = self._solve_lower(self._cross(xs)).squeeze(-1)
         d2 = kxx + noise - (l * l).sum(-1)
         floor = 1e-10 * (kxx + noise)
