@@ -129,11 +129,15 @@ class OnlineGP(PriorMean, nn.Module):
         self.num_nodes, self.input_dim, self.output_dim = int(num_nodes), int(input_dim), int(output_dim)
         self._set_mean(mean)
         bs = torch.Size([self.num_nodes])
+        # the modules in the run's dtype before their values are set, so that a float64 GP holds its
+        # hyperparameters exactly (set in float32 first, they would be rounded to float32)
         self.covar_module = gpytorch.kernels.ScaleKernel(gpytorch.kernels.RBFKernel(batch_shape=bs), batch_shape=bs)
-        self.covar_module.outputscale = torch.full(bs, float(outputscale) ** 2)
-        self.covar_module.base_kernel.lengthscale = torch.full((*bs, 1, 1), float(lengthscale))
         self.likelihood = gpytorch.likelihoods.GaussianLikelihood(batch_shape=bs)
-        self.likelihood.noise = torch.full((*bs, 1), float(noise_std) ** 2)
+        self.covar_module.to(dtype=dtype)
+        self.likelihood.to(dtype=dtype)
+        self.covar_module.outputscale = torch.full(bs, float(outputscale) ** 2, dtype=dtype)
+        self.covar_module.base_kernel.lengthscale = torch.full((*bs, 1, 1), float(lengthscale), dtype=dtype)
+        self.likelihood.noise = torch.full((*bs, 1), float(noise_std) ** 2, dtype=dtype)
         self.constant = nn.Parameter(torch.zeros(self.num_nodes, self.output_dim), requires_grad=mean == "constant")
         self.to(dtype=dtype, device=device)
         self.dtype_, self.device_ = dtype, torch.device(device)
@@ -335,7 +339,7 @@ class OnlineGP(PriorMean, nn.Module):
             self.clamped = self.clamped + ((d2 < floor) & valid).sum()
         d = torch.where(valid, d2.clamp_min(floor).sqrt(), torch.ones_like(d2))
         vcol = valid.unsqueeze(-1)
-        l = l * vcol
+        l = torch.where(vcol, l, torch.zeros_like(l))  # a non-finite input gives a NaN row: zero it
         r = torch.where(vcol, y.to(self.X) - self.prior_mean(xs).squeeze(1), torch.zeros_like(y, dtype=self.X.dtype))
         # k^T alpha = (L^{-1} k)^T (L^{-1} R) = l^T V: the residual of the new output
         resid = r - (l.unsqueeze(-2) @ self.V[:, :n]).squeeze(-2)
@@ -348,7 +352,7 @@ class OnlineGP(PriorMean, nn.Module):
             if bvec is None:
                 bvec = self._tri(self._pad(l.unsqueeze(-1)), upper=True)[:, :n, 0].to(self.dtype_)
             else:
-                bvec = bvec * vcol
+                bvec = torch.where(vcol, bvec, torch.zeros_like(bvec))
             self.A[:, :n].addcmul_(bvec.unsqueeze(-1), q.unsqueeze(1), value=-1.0)
         self.A[:, n] = q
         if self.inverse:  # the new row of L^{-1}: [-b^T, 1] / d
@@ -512,6 +516,73 @@ class OnlineGP(PriorMean, nn.Module):
             # so pointer + version identify it without a device-to-host comparison
             self._pending = pair
             self._last = (x, w[..., 0], n, x._version, b[..., 0] if pair else None)
+        return mean, var, jac
+
+    @torch.no_grad()
+    def predict_belief(
+        self, x: Tensor, cov: Tensor, jacobian: bool = True, variance: bool = True
+    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        r"""Posterior mean, latent variance and mean Jacobian averaged over a Gaussian input
+        :math:`y \sim \mathcal N(x, P)` (uncertain inputs: Girard et al. 2003; Deisenroth et al. 2009).
+
+        For the RBF kernel the expected cross-kernel is closed form,
+
+        .. math::
+            q_a = \mathbb E[k(y, x_a)] = \sigma_f^2 \,|I + P/l^2|^{-1/2}
+                  \exp\!\big(-\tfrac12 (x - x_a)^T (l^2 I + P)^{-1} (x - x_a)\big),
+
+        so the expected mean is :math:`\mathbb E[\mu(y)] = m(x) + q^T \alpha` (the prior means
+        are linear: :math:`\mathbb E[m(y)] = m(x)`), and its gradient,
+        :math:`\partial m/\partial x - \sum_a \alpha_a q_a \big((l^2 I + P)^{-1}(x - x_a)\big)^T`,
+        equals :math:`\mathbb E[\partial\mu/\partial y] = \mathrm{Cov}(\mu(y), y) P^{-1}` (Stein's
+        lemma): the statistical linearisation of the GP mean over the belief. At :math:`P = 0` this
+        is :meth:`predict`; as :math:`P` grows past the length scale the learned part fades, and a
+        belief that knows nothing gets the prior's mean and Jacobian back instead of a local slope
+        extrapolated over its whole spread.
+
+        The variance is the latent variance at the mean, :math:`\Sigma_f(x)`, as in the GP-UKF
+        (:mod:`dslearn.filters.ukf`; Ko & Fox 2009): the belief's own spread enters the filter
+        through :math:`A P A^T`. (The exact :math:`\mathbb E[\Sigma_f(y)]` needs
+        :math:`\mathbb E[k k^T]`, ``n x n`` per query; its cheap Jensen bound
+        :math:`\sigma_f^2 - q^T (K + \sigma_\epsilon^2 I)^{-1} q` was measured worse: near
+        :math:`\sigma_f^2` for a belief whose velocity is known to ~1 m/s, it widens that
+        belief further at every step, README of ``experiments/ethucy_tracking``.) With one query
+        per node the solve is the one :meth:`append` reuses, as after :meth:`predict`.
+
+        Args:
+            x: ``(S, N, Dx)`` belief means; cov: ``(S, N, Dx, Dx)`` their covariances.
+        Returns:
+            mean ``(S, N, Dy)``, var ``(S, N)`` or None, jac ``(S, N, Dy, Dx)`` or None.
+        """
+        n = self.n
+        x, cov = x.to(self.X), cov.to(self.X)
+        s_, nq, dx = x.shape
+        if cov.shape != (s_, nq, dx, dx):
+            raise ValueError(f"predict_belief: cov {tuple(cov.shape)} does not match x {tuple(x.shape)}")
+        # the variance at the mean first: predict() keeps its solve for the append that follows
+        var = None
+        if variance:
+            var = self.predict(x, jacobian=False)[1]
+        else:
+            self._last = None
+        mean = self.prior_mean(x)
+        jac = self.prior_mean_jacobian(x) if jacobian else None
+        if n == 0:
+            return mean, var, jac
+        ls2 = self._ls.reshape(-1, 1, 1, 1) ** 2  # (S, 1, 1, 1)
+        C = cov + ls2 * torch.eye(dx, dtype=x.dtype, device=x.device)  # l^2 I + P: (S, N, Dx, Dx)
+        Lc = torch.linalg.cholesky(C)
+        diff = (x.unsqueeze(-2) - self.X[:, :n].unsqueeze(1)).transpose(-1, -2)  # (S, N, Dx, n)
+        u = torch.linalg.solve_triangular(Lc, diff, upper=False)
+        # log |I + P/l^2| = log |C| - Dx log l^2
+        logdet = 2 * Lc.diagonal(dim1=-2, dim2=-1).log().sum(-1) - dx * ls2.reshape(-1, 1).log()  # (S, N)
+        q = torch.exp(-0.5 * ((u * u).sum(-2) + logdet.unsqueeze(-1)))  # (S, N, n)
+        q = q * (self._os.reshape(-1, 1, 1) * self.mask[:, :n].unsqueeze(1))
+        alpha = self.alpha  # (S, n, Dy)
+        mean = mean + q @ alpha
+        if jacobian:
+            cd = torch.linalg.solve_triangular(Lc.transpose(-1, -2), u, upper=True)  # C^{-1} (x - x_a): (S, N, Dx, n)
+            jac = jac - (alpha.transpose(-1, -2).unsqueeze(1) * q.unsqueeze(-2)) @ cd.transpose(-1, -2)
         return mean, var, jac
 
     # hyperparameter fitting ----------------------------------------------------------------

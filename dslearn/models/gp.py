@@ -13,6 +13,7 @@ from dslearn.models.base import MotionModel
 from dslearn.types import DTYPES, StepContext
 
 NOISE_MODES = ("latent", "predictive", "adaptive")
+INPUTS = ("mean", "belief")
 
 
 class GPMotionModel(MotionModel):
@@ -47,6 +48,14 @@ class GPMotionModel(MotionModel):
         factor: ``auto``, ``inverse`` or ``cholesky``: whether the exact GP keeps the inverse
             Cholesky factor (one pass over memory per learning step) or the factor itself
             (two triangular solves); ``auto`` takes the inverse on the CPU (:class:`OnlineGP`).
+        inputs: where the filter's linearisation evaluates the GP. ``mean`` (the paper's EKF, as
+            printed): mean, Jacobian and latent variance at the belief's mean. ``belief``: the
+            same averaged over the belief :math:`\mathcal N(\hat y, P)` the filter hands in
+            (``ctx.cov``; :meth:`OnlineGP.predict_belief`): the statistical linearisation of the
+            GP, which a belief much wider than the length scale (a target the node has not
+            localised yet) sees as the prior mean and its Jacobian instead of a local
+            slope extrapolated over kilometres. Exact and window GPs; point evaluations
+            (:meth:`forward`, roll-outs, sigma points) are unchanged.
         variant: ``exact`` (:class:`OnlineGP`) or a scalable variant of
             :mod:`dslearn.learning.sparse`: ``window`` (option ``window``), ``sgpr`` (``inducing``),
             ``ssgp`` (``features``, ``seed``); options are passed as keywords.
@@ -80,9 +89,11 @@ class GPMotionModel(MotionModel):
         noise_fading: float = 0.9,
         factor_dtype: str | None = None,
         factor: str = "auto",
+        inputs: str = "mean",
         **variant_options,
     ):
         super().__init__()
+        check_choice("model.inputs", inputs, INPUTS)
         if factor_dtype is not None:
             check_choice("model.factor_dtype", factor_dtype, tuple(DTYPES))
             if variant != "exact" or variant_options:
@@ -113,6 +124,13 @@ class GPMotionModel(MotionModel):
                 noise_std=noise_std, mean=mean, dtype=dtype, device=device, capacity=capacity, **variant_options,
             )
 
+        if inputs == "belief":
+            if not hasattr(self.gp, "predict_belief"):
+                raise ConfigError(f"model.inputs=belief: only the exact and window GPs average over the belief "
+                                  f"(model.variant={variant}; choose model.inputs=mean)")
+            if jacobian != "closed_form":
+                raise ConfigError("model.inputs=belief: the belief-averaged Jacobian is closed form (choose model.jacobian=closed_form)")
+        self.inputs = inputs
         self.noise_fading = float(noise_fading)
         # adaptive process noise: running (position, velocity) variance per node, and the weight of
         # its fading average over episodes; it starts at sigma_eps^2, counted as one episode
@@ -165,11 +183,16 @@ class GPMotionModel(MotionModel):
         return x.reshape(self.num_nodes, -1, self.state_dim)
 
     def linearize(self, x: Tensor, ctx: StepContext) -> tuple[Tensor, Tensor, Tensor]:
-        mean, var, jac = self.gp.predict(self._flat(x), jacobian=self.jacobian_mode == "closed_form")
-        if self.jacobian_mode == "autograd":
-            jac = self._autograd_jacobian(x)
-        else:
+        if self.inputs == "belief" and ctx.cov is not None:  # averaged over N(x, ctx.cov)
+            cov = ctx.cov.to(x).expand(*x.shape, x.shape[-1]).reshape(self.num_nodes, -1, self.state_dim, self.state_dim)
+            mean, var, jac = self.gp.predict_belief(self._flat(x), cov)
             jac = jac.reshape(*x.shape, self.state_dim)
+        else:
+            mean, var, jac = self.gp.predict(self._flat(x), jacobian=self.jacobian_mode == "closed_form")
+            if self.jacobian_mode == "autograd":
+                jac = self._autograd_jacobian(x)
+            else:
+                jac = jac.reshape(*x.shape, self.state_dim)
         if self.noise_mode == "predictive":
             var = var + self.gp.noise_var.unsqueeze(-1)
         eye = torch.eye(self.state_dim, dtype=x.dtype, device=x.device)

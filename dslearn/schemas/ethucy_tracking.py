@@ -18,6 +18,7 @@ CRITERIA = ("mutual", "closest")
 SPLITS = ("time", "scene", "random")  # as dslearn.data.episodes; "scene" is refused with the reason in check()
 AGGREGATED_TARGET = "dslearn.models.aggregated.aggregated_for_scenario"
 GP_TARGET = "dslearn.models.gp.GPMotionModel.for_scenario"
+GP_INPUTS = ("belief", "mean")  # dslearn.models.gp.INPUTS: where the EKF evaluates the GPs
 FUSIONS = ("hybrid", "cm", "ci", "ce", "individual")
 
 
@@ -100,6 +101,7 @@ class EthucyTrackingTask:
     test_episodes: int = ranged(25, ge=1)
     plot_episodes: int = ranged(3, ge=0)
     models: List[str] = ranged(factory=lambda: list(MODELS), choices=MODELS, each=True, min_len=1)
+    gp_inputs: str = ranged("belief", choices=GP_INPUTS)
     network: RealNetwork = field(default_factory=RealNetwork)
     lin: RealLin = field(default_factory=RealLin)
     sfm: RealSfm = field(default_factory=RealSfm)
@@ -145,6 +147,14 @@ def check(cfg: DictConfig) -> None:
             raise ConfigError(f"model._target_={target!r} (model={cfg.model.get('name')}) is not allowed with task.models "
                               f"gp / gp_cv; choose a GP model group (model=gp, gp_increment, gp_window, gp_rbcm, ...: "
                               f"_target_ {GP_TARGET} or {AGGREGATED_TARGET})")
+        variant = cfg.model.get("variant") or "exact"
+        if t.gp_inputs == "belief" and (target == AGGREGATED_TARGET or variant not in ("exact", "window")):
+            raise ConfigError(f"task.gp_inputs=belief averages the exact or window GP over the belief; model="
+                              f"{cfg.model.get('name')} ({'aggregated' if target == AGGREGATED_TARGET else variant}) "
+                              f"has no such average: choose task.gp_inputs=mean or model=gp_increment, gp, gp_window")
+        if t.gp_inputs == "belief" and cfg.model.get("jacobian") == "autograd":
+            raise ConfigError("task.gp_inputs=belief: the Jacobian averaged over the belief is closed form; choose "
+                              "model.jacobian=closed_form or task.gp_inputs=mean")
         if target == AGGREGATED_TARGET:
             from dslearn.models.aggregated import RULES
 

@@ -33,6 +33,7 @@ if episodes are longer).
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from types import SimpleNamespace
@@ -40,10 +41,10 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 from torch import Tensor
 
-from dslearn.compose import build_fusion, build_motion_model, build_network, build_scenario, resolve_dtype
+from dslearn.compose import build_fusion, build_motion_model, build_network, build_predict, build_scenario, resolve_dtype
 from dslearn.data.datasets import load_dataset, task_datasets
 from dslearn.filters.distributed import initial_belief, track
 from dslearn.fusion.strategies import ConsensusOnMeasurements, Fusion
@@ -92,6 +93,10 @@ def _gp(cfg: DictConfig, data: Data, dtype, device, cv_mean: bool = False) -> Mo
     node = cfg.model
     if cv_mean:  # the same GP with the constant-velocity step as its prior mean (a mean module)
         node = OmegaConf.merge(node, {"mean": {"_target_": "dslearn.learning.means.ConstantVelocityMean", "dt": float(data.ctx.dt)}})
+    if cfg.task.get("gp_inputs", "mean") != "mean":  # where the EKF evaluates the GP (GPMotionModel's `inputs`)
+        node = copy.deepcopy(node)
+        with open_dict(node):
+            node.inputs = str(cfg.task.gp_inputs)
     model = build_motion_model(node, stub, data.network, dtype, device)
     return model
 
@@ -128,9 +133,11 @@ def cm_fused(cfg: DictConfig, data: Data, ep: Episodes) -> Tensor:
 
 
 def learner(cfg, model, data: Data, fusion: Fusion) -> OnlineLearner:
-    """Algorithm 1 (:class:`~dslearn.learning.online.OnlineLearner`) for ``model`` on ``data``'s network."""
+    """Algorithm 1 (:class:`~dslearn.learning.online.OnlineLearner`) for ``model`` on ``data``'s network, with
+    the root ``filter`` group's prediction step (EKF, or ``filter=ukf``)."""
     return OnlineLearner(data.network, model, LinearPositionObservation(data.network.meas_std), fusion, data.ctx,
-                         init=lambda ep: _init(cfg, data, ep, fusion), learn_gate_std=cfg.filter.get("learn_gate_std"))
+                         init=lambda ep: _init(cfg, data, ep, fusion), predict_step=build_predict(cfg),
+                         learn_gate_std=cfg.filter.get("learn_gate_std"))
 
 
 def train_online(alg: OnlineLearner, data: Data, upto: int) -> None:
