@@ -6,7 +6,9 @@ the completeness marker: the row count and SHA-256 of ``results.csv``), then —
 ``results.csv``, and finally ``status.json`` (``done | skipped | failed | interrupted``, read by
 the sweep summary). An interrupted or failed run leaves no ``results.csv`` (or one whose hash
 does not match). While a run works in a folder it holds the folder's lock (``.dslearn.lock``,
-with its pid): a second run into the same folder is refused; a dead owner's lock is taken over.
+with its pid): a second run into the same folder is refused before it writes anything there (a
+single run's lock is taken before Hydra starts, :func:`lock_run_dir`; a sweep's in its
+``on_multirun_start``); a dead owner's lock is taken over.
 
 Resume: ``dslearn-run -m ... hydra.sweep.dir=DIR resume=true`` (or ``hydra.run.dir=DIR
 resume=true`` for one run) skips every job whose directory already holds a complete result
@@ -63,6 +65,10 @@ from dslearn.io import (
 
 log = logging.getLogger("dslearn.run")
 CONF_DIR = str(_CONF_DIR)
+#: run folder (absolute) -> the lock :func:`main` took on it before Hydra started (a single run)
+_PRELOCKED: dict[str, RunLock] = {}
+#: the command line as the user gave it (recorded in meta.json; Hydra may get a resolved run folder)
+_USER_ARGV: list[str] | None = None
 STATUS_FILE = "status.json"
 PROG = "dslearn-run"
 
@@ -254,7 +260,7 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
         "results_sha256": sha256_text(text),  # completeness marker checked by dslearn.io.check_complete
         "jitter_events": jitter,
         "jitter_max": ledger.total_max,
-        "argv": sys.argv[1:],
+        "argv": list(_USER_ARGV) if _USER_ARGV is not None else sys.argv[1:],
         "diagnostics": {**diag.as_dict(), "jitter_events": jitter, "jitter_max": ledger.total_max},
         **_hydra_job(),
     }
@@ -337,11 +343,10 @@ def _app(cfg: DictConfig) -> dict:
     job = _hydra_job()
     tag = f"job {job['job_num']}" if multirun and job.get("job_num") is not None else "run"
     t0 = time.perf_counter()
+    held = _PRELOCKED.get(os.path.abspath(out_dir))  # a single run: main() holds it already
     try:
-        lock = RunLock(out_dir)
-        lock.acquire()
-    except RunDirBusy as e:
-        log.error("%s", e)
+        lock = held if held is not None else RunLock(out_dir).acquire()
+    except RunDirBusy as e:  # not logged: the folder's run.log is its owner's
         _say("run folder busy", e)
         raise SystemExit(2)
     try:
@@ -353,7 +358,8 @@ def _app(cfg: DictConfig) -> dict:
         _say("interrupted", f"{what}: no results written; {out_dir / STATUS_FILE} says interrupted")
         raise SystemExit(143 if isinstance(e, Terminated) else 130)
     finally:
-        lock.release()
+        if held is None:
+            lock.release()
 
 
 def _run_locked(cfg: DictConfig, out_dir: Path, multirun: bool, job: dict, tag: str, t0: float) -> dict:
@@ -772,14 +778,16 @@ def _friendly(e: Exception, cfg: DictConfig | None = None) -> str:
     return msg
 
 
-def precheck(argv: list[str]) -> str | None:
+def precheck(argv: list[str], plan: dict | None = None) -> str | None:
     """Compose and validate the configuration the command line asks for; the error line or ``None``.
 
     Sweep overrides (``a=1,2``, ``range(...)``) and an experiment's sweep parameters are expanded
-    and every combination is checked, so a bad value anywhere in a sweep fails before its first
+    and every combination is checked (:func:`~dslearn.schemas.core.validate_config`, which also
+    builds the core study's parts), so a bad value anywhere in a sweep fails before its first
     job runs. ``hydra.run.dir`` / ``hydra.sweep.dir`` must name a folder (or a place one can be
     made) and the chosen launcher's plugin must be installed. Options that Hydra handles itself
-    (``--cfg``, ``--info``, ...) skip the check.
+    (``--cfg``, ``--info``, ...) skip the check. For a single run, ``plan["run_dir"]`` is set to
+    its output folder (``hydra.run.dir`` resolved; absent when it cannot be resolved here).
     """
     if any(a.split("=")[0] in _NO_CHECK_FLAGS for a in argv):
         return None
@@ -818,12 +826,76 @@ def precheck(argv: list[str]) -> str | None:
                 key = tuple(ov)
                 return seeded.pop(key) if key in seeded else compose("config", overrides=list(ov))
 
-            check_jobs(combos, _compose)
+            def _visit(cfg):
+                from dslearn.schemas.core import validate_config
+
+                validate_config(cfg)
+                if plan is not None and not multirun:
+                    where = _resolved_run_dir(cfg)
+                    if where is not None:
+                        plan["run_dir"] = where
+
+            check_jobs(combos, _compose, visit=_visit)
     except ConfigError as e:
         return str(e)
     except Exception as e:  # Hydra/OmegaConf composition errors: unknown key, group option, type
         return _friendly(e)
     return None
+
+
+def _resolved_run_dir(cfg: DictConfig) -> str | None:
+    """``hydra.run.dir`` of a composed job configuration, resolved (``None`` if it cannot be here)."""
+    try:
+        d = OmegaConf.select(cfg, "hydra.run.dir", throw_on_missing=True)
+    except Exception:  # noqa: BLE001 - e.g. ${hydra:...}, only known inside the app
+        return None
+    return None if d is None or not str(d) else str(d)
+
+
+_BARE_PATH = re.compile(r"[A-Za-z0-9_./:+@%~-]+")
+
+
+def _run_dir_override(run_dir: str) -> str | None:
+    """``hydra.run.dir=<run_dir>`` as an override Hydra parses back to exactly ``run_dir`` (or ``None``)."""
+    if "${" in run_dir:
+        return None
+    quoted = "'" + run_dir.replace("\\", "\\\\").replace("'", "\\'") + "'"
+    for value in ([run_dir] if _BARE_PATH.fullmatch(run_dir) else []) + [quoted]:
+        line = f"hydra.run.dir={value}"
+        try:
+            if str(parse_override(line).value()) == run_dir:
+                return line
+        except Exception:  # noqa: BLE001
+            continue
+    return None
+
+
+def lock_run_dir(argv: list[str], run_dir: str | None) -> tuple[list[str], RunLock | None]:
+    """Take a single run's folder lock before Hydra starts: Hydra writes ``.hydra/`` and opens
+    ``run.log`` in the folder before the task runs, so a run refused as busy must be refused
+    here to leave an existing run folder untouched. Where ``hydra.run.dir`` was not given as a
+    plain path (the default has a timestamp), Hydra gets the resolved folder as an override, so
+    that it writes where the lock is. Returns Hydra's command line and the lock (``None``: not
+    resolvable here; the app then locks the folder itself). Raises :class:`RunDirBusy`."""
+    if run_dir is None:
+        return argv, None
+    given = []
+    for i, a in enumerate(argv):
+        if not a.startswith("-"):
+            try:
+                if parse_override(a).key_or_group == "hydra.run.dir":
+                    given.append(i)
+            except Exception:  # noqa: BLE001
+                continue
+    out = list(argv)
+    if not given or "${" in argv[given[-1]]:
+        line = _run_dir_override(run_dir)
+        if line is None:
+            return argv, None
+        out = [a for i, a in enumerate(argv) if i not in given] + [line]
+    lock = RunLock(run_dir).acquire()
+    _PRELOCKED[os.path.abspath(run_dir)] = lock
+    return out, lock
 
 
 # --------------------------------------------------------------------------------------------
@@ -944,12 +1016,20 @@ def main(argv: list[str] | None = None) -> None:
         if "--version" in argv:
             print(version_text())
             return
-        err = precheck(argv)
+        plan: dict = {}
+        err = precheck(argv, plan)
         if err is not None:
             _say("configuration error", err)
             raise SystemExit(2)
+        try:
+            hydra_argv, held = lock_run_dir(argv, plan.get("run_dir"))
+        except RunDirBusy as e:  # before Hydra wrote anything into the folder
+            _say("run folder busy", e)
+            raise SystemExit(2)
+        global _USER_ARGV
         old = sys.argv
-        sys.argv = [old[0] if old else PROG, *argv]
+        sys.argv = [old[0] if old else PROG, *hydra_argv]
+        _USER_ARGV = argv
         old_term = None
         try:
             import signal
@@ -963,6 +1043,10 @@ def main(argv: list[str] | None = None) -> None:
             _app()
         finally:
             sys.argv = old
+            _USER_ARGV = None
+            if held is not None:
+                _PRELOCKED.pop(os.path.abspath(plan["run_dir"]), None)
+                held.release()
             if old_term is not None:
                 signal.signal(signal.SIGTERM, old_term)
     except KeyboardInterrupt as e:

@@ -238,6 +238,8 @@ BAD_FILES = {
     "bom": (b"\xef\xbb\xbf0\t1\t1.0\t2.0\n", "crowds_zara01.txt:1: starts with a UTF-8 byte-order mark (BOM)"),
     "header": (b"frame\tped\tx\ty\n0\t1\t1.0\t2.0\n", "crowds_zara01.txt:1: non-numeric field in 'frame\\tped\\tx\\ty' (a header line?"),
     "backwards": (b"10\t1\t1.0\t2.0\n0\t1\t1.0\t2.0\n", "crowds_zara01.txt:2: frame 0 after frame 10 (frames must not decrease)"),
+    "off_step": (b"0\t1\t1.0\t2.0\n10\t1\t1.1\t2.0\n10\t2\t3.0\t2.0\n25\t2\t3.1\t2.0\n25\t1\t1.2\t2.0\n",
+                 "crowds_zara01.txt:4: frame 25 is not a multiple of 10 (the frame step, task.datasets.zara1.frame_step"),
 }
 
 
@@ -432,6 +434,27 @@ def test_trajectory_file_broken_line(tmp_path):
         ethucy.read_trajectories(p)
 
 
+def test_frame_off_the_frame_step_names_file_and_line(tmp_path):
+    """The first line whose frame is not a multiple of the frame step, in file order (the loader
+    sorts by (frame, ped), which puts ped 1 of frame 30 before ped 3 at line 5)."""
+    from dslearn.data import ethucy
+    from dslearn.data.datasets import DatasetSpec, load_dataset
+
+    p = tmp_path / "scene.txt"
+    p.write_text("0 1 1.0 2.0\n0 2 3.0 2.0\n20 2 3.1 2.0\n30 3 5.0 1.0\n30 1 1.2 2.0\n35 2 3.2 2.0\n")
+    assert len(ethucy.read_trajectories(p)) == 6  # no step given: not checked
+    assert len(ethucy.read_trajectories(p, frame_step=5)) == 6
+    with pytest.raises(DataFormatError) as e:
+        ethucy.read_trajectories(p, frame_step=10, step_key="task.datasets.s.frame_step")
+    assert str(e.value) == (f"{p}:6: frame 35 is not a multiple of 10 (the frame step, task.datasets.s.frame_step: "
+                            "frames between a pedestrian's rows)")
+    with pytest.raises(DataFormatError, match=rf"{p}:3: frame 20 is not a multiple of 15 \(the frame step, task\.datasets\.s\.frame_step"):
+        load_dataset(DatasetSpec("s", "S", ("scene.txt",), root=str(tmp_path), frame_step=15), None)
+    with pytest.raises(DataFormatError, match=rf"{p}:3: .*\(the frame step, datasets\.s\.frame_step"):
+        load_dataset(DatasetSpec("s", "S", ("scene.txt",), root=str(tmp_path), frame_step=15), None,
+                     root_key="data_root", datasets_key="datasets")
+
+
 def test_model_files_safe_and_matching(tmp_path):
     from dslearn.models import ConstantVelocity, SocialForce
 
@@ -496,3 +519,242 @@ def test_cli_ctrl_c_exit_130_status_interrupted(tmp_path):
             p.kill()
     assert_refused(p.returncode, out, err, "dslearn-run: interrupted: Ctrl-C: no results written;", run, exit_code=130)
     assert json.loads((run / "status.json").read_text())["status"] == "interrupted"
+
+
+# ------------------------------------------------------------------------------------------
+# refusals that only a part's constructor can state: in the start-up check too, full key named
+
+BUILD_CASES = [
+    (["model=gp_rbcm", "model.aggregation=grbcm"],
+     "model.aggregation='grbcm' is not available for the aggregated GP motion model"),
+    (["model=gp_increment_rbcm", "model.aggregation=rbcm2"], "model.aggregation='rbcm2' is not allowed; choose one of ['poe'"),
+    (["model=gp_rbcm", "model.noise=adaptive"], "model.noise='adaptive' is not available for an aggregated GP"),
+    (["filter=ukf", "filter.predict.alpha=-1"], "filter.predict.alpha=-1 must be > 0"),
+    (["filter=ukf", "filter.predict.beta=-0.5"], "filter.predict.beta=-0.5 must be >= 0"),
+    (["filter=ukf", "filter.predict.kappa=-8"],  # Dx = 8 (two agents): Dx + kappa must be > 0
+     "filter.predict.kappa=-8 with state dimension Dx=8 gives Dx + lambda = alpha^2 (Dx + kappa) = 0"),
+    (["experiment=yu_faults", "filter=ukf", "filter.predict.kappa=nan"], "filter.predict.kappa=nan must be a finite number"),
+    (["network.comm_radius=0.5"], "network communication graph is disconnected"),
+]
+
+
+@pytest.mark.parametrize("overrides,expected", BUILD_CASES, ids=lambda v: str(v)[:48])
+def test_constructor_refusals_come_before_the_run(tmp_path, overrides, expected):
+    run = tmp_path / "run"
+    code, out, err = cli([*overrides, "data.train_episodes=1", "data.test_episodes=1", f"hydra.run.dir={run}"])
+    assert_refused(code, out, err, "dslearn-run: configuration error: " + expected)
+    assert not run.exists()  # refused by the start-up check: no run folder, no run.log
+
+
+def test_parts_check_passes_good_parts(make_cfg):
+    """Good UKF / aggregated settings pass the parts check (kappa = -7 is legal for Dx = 8, -8 is not)."""
+    from dslearn.schemas.core import check_parts
+
+    for ov in (["model=gp_rbcm", "model.aggregation=poe", "model.noise=predictive"], ["model=gp_increment_rbcm"],
+               ["filter=ukf", "filter.predict.kappa=-7", "filter.predict.alpha=0.5", "filter.predict.beta=0"],
+               ["experiment=yu_faults", "filter=ukf"]):
+        validate_config(make_cfg(*ov))
+    with pytest.raises(ConfigError, match=r"^filter\.predict\.kappa=-9 with state dimension Dx=8"):
+        check_parts(make_cfg("filter=ukf", "filter.predict.kappa=-9"))
+
+
+@pytest.mark.parametrize("sweep,expected", [
+    (["model=gp_rbcm", "model.aggregation=rbcm,grbcm,bcm"],
+     "model.aggregation='grbcm' is not available for the aggregated GP motion model: grBCM needs a communication "
+     "expert (a data subset shared by every node), which this setting does not have; choose one of "
+     "['poe', 'gpoe', 'bcm', 'rbcm'] (sweep job 1: model=gp_rbcm model.aggregation=grbcm data.train_episodes=1"),
+    (["model=gp_rbcm,gp_increment_rbcm", "model.noise=latent,adaptive"],
+     "model.noise='adaptive' is not available for an aggregated GP (model.aggregation=rbcm); choose "
+     "model.noise=latent or model.noise=predictive (sweep job 1: model=gp_rbcm model.noise=adaptive data.train_episodes=1"),
+    (["filter=ukf", "filter.predict.alpha=1,0.5,-1,2"],
+     "filter.predict.alpha=-1 must be > 0 (sweep job 2: filter=ukf filter.predict.alpha=-1 data.train_episodes=1"),
+], ids=["grbcm", "adaptive", "ukf_alpha"])
+def test_sweep_with_one_bad_job_runs_none(tmp_path, sweep, expected):
+    sw = tmp_path / "sw"
+    code, out, err = cli(["-m", *sweep, "data.train_episodes=1", "data.test_episodes=1", "hydra/launcher=basic",
+                          f"hydra.sweep.dir={sw}"])
+    assert_refused(code, out, err, "dslearn-run: configuration error: " + expected)
+    assert not sw.exists()  # no job folder: no job started
+
+
+# ------------------------------------------------------------------------------------------
+# a run refused from a busy run folder touches nothing of it
+
+
+def _snapshot(root: Path) -> dict:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_busy_run_folder_is_left_byte_identical(tmp_path):
+    from dslearn.io import RunLock
+
+    argv = ["model=lin", "data.train_episodes=0", "data.test_episodes=1", "print_table=false"]
+    run = tmp_path / "run"
+    code, out, err = cli([*argv, f"hydra.run.dir={run}"])
+    assert code == 0, err
+    assert {".hydra/config.yaml", ".hydra/overrides.yaml", "run.log", "config.yaml", "meta.json", "results.csv"} <= set(_snapshot(run))
+    with RunLock(run):  # its owner is back at work in it
+        before = _snapshot(run)
+        code, out, err = cli(["model=sfm", "seed=3", "data.train_episodes=0", "data.test_episodes=1", f"hydra.run.dir={run}"])
+        assert_refused(code, out, err, f"dslearn-run: run folder busy: {run} is in use by another dslearn-run (pid {os.getpid()}")
+        assert _snapshot(run) == before  # .hydra/, run.log, config.yaml, meta.json: not a byte changed
+    # a run folder named with interpolations (the default has a timestamp) is resolved and locked
+    # before Hydra starts too, and the run then writes there; meta.json keeps the command line given
+    code, out, err = cli([*argv, f"hydra.run.dir={tmp_path}/${{study}}_x"])
+    done = tmp_path / "default_x"
+    assert code == 0 and (done / "results.csv").is_file(), err
+    assert json.loads((done / "meta.json").read_text())["argv"] == [*argv, f"hydra.run.dir={tmp_path}/${{study}}_x"]
+    with RunLock(done):
+        before = _snapshot(done)
+        code, out, err = cli([*argv, "seed=3", f"hydra.run.dir={tmp_path}/${{study}}_x"])
+        assert_refused(code, out, err, f"dslearn-run: run folder busy: {done} is in use")
+        assert _snapshot(done) == before
+
+
+# ------------------------------------------------------------------------------------------
+# LSTM checkpoints: every broken file is one error naming the file
+
+
+class _Planted:
+    """A pickled object whose unpickling would create a file (code execution, if it ran)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_lstm_checkpoint_bad_files(tmp_path):
+    from dslearn.models.lstm import CHECKPOINT_FORMAT, SocialLSTM, load_checkpoint, save_checkpoint
+
+    m = SocialLSTM(1, embed=8, hidden=8, seed=0)
+    good = tmp_path / "good.pt"
+    save_checkpoint(m, good)
+    raw = good.read_bytes()
+    blob = torch.load(good, weights_only=True)
+    h = torch.randn(3, 2, 1, 2, dtype=torch.float64)
+    assert torch.equal(load_checkpoint(good).predict(h), m.predict(h))
+
+    def put(name, content):
+        p = tmp_path / name
+        if isinstance(content, bytes):
+            p.write_bytes(content)
+        else:
+            torch.save(content, p)
+        return p
+
+    marker = tmp_path / "code_ran"
+    nan_state = {**blob["state_dict"], "output.bias": torch.tensor([float("nan"), 0.0])}
+    cases = [
+        (tmp_path / "missing.pt", DataFormatError, "no such LSTM checkpoint file"),
+        (tmp_path, DataFormatError, "is a folder, not an LSTM checkpoint file"),
+        (put("empty.pt", b""), DataFormatError, "empty file, not an LSTM checkpoint"),
+        (put("half.pt", raw[: len(raw) // 2]), DataFormatError, "not a readable torch checkpoint (truncated or corrupt"),
+        (put("text.pt", b"epoch,loss\n1,0.5\n"), DataFormatError, "not a readable torch checkpoint (truncated or corrupt"),
+        (put("code.pt", {"format": CHECKPOINT_FORMAT, "hparams": _Planted(marker)}), DataFormatError,
+         "refused: it pickles the Python object io.open, which could run code when loaded"),
+        (put("list.pt", [1, 2]), DataFormatError, f"not a {CHECKPOINT_FORMAT} checkpoint (a list)"),
+        (put("wider.pt", {**blob, "hparams": {**blob["hparams"], "hidden": 16}}), DataFormatError,
+         "the weights do not match the saved hyperparameters (pooling='none', embed=8, hidden=16, grid=4): "
+         "encoder.weight_ih: file (32, 8) vs hparams (64, 8)"),
+        (put("social.pt", {**blob, "hparams": {**blob["hparams"], "pooling": "social"}}), DataFormatError,
+         "the weights do not match the saved hyperparameters (pooling='social', embed=8, hidden=8, grid=4): "
+         "missing ['pool_embed.0.bias', 'pool_embed.0.weight']"),
+        (put("range.pt", {**blob, "hparams": {**blob["hparams"], "grid": 0}}), DataFormatError,
+         "invalid saved hyperparameters: lstm.grid=0 must be an integer >= 1"),
+        (put("lacks.pt", {**blob, "hparams": {k: v for k, v in blob["hparams"].items() if k != "dt"}}), DataFormatError,
+         "hparams lacks ['dt']"),
+        (put("nan.pt", {**blob, "state_dict": nan_state}), DataFormatError, "state_dict['output.bias'] holds NaN or infinite weights"),
+        (put("hist.pt", {**blob, "history": {"epoch": [1.0, 2.0], "train_loss": [0.5]}}), DataFormatError,
+         "history is not a mapping of equally long per-epoch lists"),
+    ]
+    for path, exc, frag in cases:
+        with pytest.raises(exc) as e:
+            load_checkpoint(path)
+        msg = str(e.value)
+        assert type(e.value) is exc and msg.startswith(f"{path}: ") and frag in msg, (path.name, msg)
+        assert "\n" not in msg
+    assert not marker.exists()  # the pickled call was refused, never run
+    # the model given disagrees with the file: a configuration error naming the file
+    with pytest.raises(ConfigError, match=rf"checkpoint '{good}' does not match the model's lstm hyperparameters: hidden: checkpoint 8 vs model 16"):
+        load_checkpoint(good, SocialLSTM(1, embed=8, hidden=16))
+
+
+# ------------------------------------------------------------------------------------------
+# dslearn-train-lstm refuses like dslearn-run: one line, exit 2, its own keys, nothing left
+
+
+def _zara1(folder: Path, text: str | bytes | None = None) -> Path:
+    """A small crowds_zara01.txt: 3 pedestrians on straight lines for 25 steps (or ``text``)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if text is None:
+        rows = [f"{10 * k}\t{p}\t{0.4 * k + p:.2f}\t{1.0 * p:.2f}" for k in range(25) for p in (1, 2, 3)]
+        text = "\n".join(rows) + "\n"
+    (folder / "crowds_zara01.txt").write_bytes(text if isinstance(text, bytes) else text.encode())
+    return folder
+
+
+def _train_cli(argv):
+    from dslearn.train_lstm import main
+
+    return cli(argv, main=main)
+
+
+def test_train_lstm_refuses_bad_input(tmp_path):
+    data = _zara1(tmp_path / "data")
+    small = [f"data_root={data}", "train_scenes=[zara1]", "val_scenes=[]", "train_part=all", "lstm.embed=4",
+             "lstm.hidden=4", "lstm.epochs=1", "progress=false"]
+    ckdir = tmp_path / "ck"
+    ckdir.mkdir()
+    (ckdir / "keep.txt").write_text("x")
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    runs = tmp_path / "runs"
+    binary = _zara1(tmp_path / "bin", b"0\t1\t1.0\t2.0\n10\t1\t1.0\x00\x01\n")
+    for argv, kind, frag in (
+        (["colour=red"], "configuration error", "colour: no such key in the configuration (known keys: ['checkpoint'"),
+        (["lstm.warmup=3"], "configuration error", "lstm.warmup: no such key in the configuration (known keys of lstm: ["),
+        (["+lstm.warmup=3"], "configuration error", "lstm has unknown keys ['warmup']"),
+        (["seed=abc"], "configuration error", "seed: Value 'abc' of type 'str' could not be converted to Integer"),
+        (["lstm.hidden=abc"], "configuration error", "lstm.hidden='abc' must be an integer >= 1"),
+        (["lstm=nosuch"], "configuration error", "lstm='nosuch' is not an option of the config group 'lstm'"),
+        (["datasets.zara1.frame_step=0"], "configuration error", "datasets.zara1.frame_step=0 must be >= 1"),
+        ([f"checkpoint={ckdir}"], "configuration error", f"checkpoint={ckdir} is a folder; give the checkpoint's file path"),
+        ([f"checkpoint={afile}/lstm.pt"], "configuration error", f"checkpoint={afile}/lstm.pt: {afile} is a file"),
+        ([f"data_root={tmp_path / 'nowhere'}"], "configuration error",
+         f"data_root='{tmp_path / 'nowhere'}' does not exist; give the folder holding crowds_zara01.txt"),
+        ([f"data_root={binary}"], "data error", f"{binary / 'crowds_zara01.txt'}:2: binary file (NUL byte)"),
+        (["-m", "lstm.epochs=1,0"], "configuration error", "lstm.epochs=0 must be an integer >= 1 (sweep job 1: "),
+    ):
+        code, out, err = _train_cli([*small, *argv, f"hydra.run.dir={runs}", f"hydra.sweep.dir={runs}"])
+        assert_refused(code, out, err, f"dslearn-train-lstm: {kind}: {frag}", prog="dslearn-train-lstm")
+        assert "task.data_root" not in err and "task.datasets" not in err
+        assert not runs.exists(), argv  # refused before Hydra made a run folder
+    assert sorted(p.name for p in ckdir.iterdir()) == ["keep.txt"] and afile.read_text() == "x"
+
+
+def test_train_lstm_failed_save_leaves_nothing(tmp_path, monkeypatch):
+    """A checkpoint that cannot be written after training (the disk fills up): exit 1 with the
+    error, no checkpoint, no temporary file, no history.csv."""
+    import dslearn.models.lstm as lstm_mod
+
+    data = _zara1(tmp_path / "data")
+    ck = tmp_path / "ck" / "m.pt"
+    real_save = torch.save
+
+    def full_disk(obj, f, *a, **k):
+        real_save(obj, f, *a, **k)  # the temporary file is written, then the disk is full
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(lstm_mod.torch, "save", full_disk)
+    run = tmp_path / "run"
+    argv = [f"data_root={data}", "train_scenes=[zara1]", "val_scenes=[]", "train_part=all", "lstm.embed=4",
+            "lstm.hidden=4", "lstm.epochs=1", "progress=false", f"checkpoint={ck}", f"hydra.run.dir={run}"]
+    code, out, err = _train_cli(argv)
+    assert code == 1 and "No space left on device" in err, err
+    assert list(ck.parent.iterdir()) == [] and not (run / "history.csv").exists()
+    monkeypatch.setattr(lstm_mod.torch, "save", real_save)
+    code, out, err = _train_cli(argv)
+    assert code == 0 and ck.is_file() and (run / "history.csv").is_file(), err
+    assert sorted(p.name for p in ck.parent.iterdir()) == ["m.pt"]

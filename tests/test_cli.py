@@ -201,3 +201,21 @@ def test_log_lines_do_not_break_the_bar():
             assert h in root.handlers
     finally:
         root.removeHandler(h)
+
+
+def test_train_lstm_console_refuses_in_one_line(tmp_path):
+    """``dslearn-train-lstm`` (the console entry, a real interpreter): an unknown key is one line
+    naming the key and the group's keys, exit code 2, no traceback, and no run folder made."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "CI": "1", "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    r = subprocess.run([sys.executable, "-m", "dslearn.train_lstm", "lstm.warmup=3"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=300)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith("dslearn-train-lstm: configuration error: lstm.warmup: no such key in the configuration "
+                               "(known keys of lstm: ['batch_size', 'embed', 'epochs',"), lines[0]
+    assert "Traceback" not in r.stderr + r.stdout
+    assert list(tmp_path.iterdir()) == []  # no outputs/train_lstm/<time> folder

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from dslearn.data.ethucy import data_available
-from dslearn.errors import ConfigError
+from dslearn.errors import ConfigError, DataFormatError
 from dslearn.models.base import MotionModel
 from dslearn.models.lstm import (
     SocialLSTM,
@@ -126,7 +126,7 @@ def test_checkpoint_round_trip_and_mismatch(tmp_path):
     with pytest.raises(ConfigError, match="dt"):
         SocialLSTM(2, pooling="social", embed=8, hidden=8, dt=2 / 3).load(path)
     torch.save({"weights": torch.zeros(2)}, tmp_path / "other.pt")
-    with pytest.raises(ConfigError, match="not a"):
+    with pytest.raises(DataFormatError, match=r"other\.pt: not a dslearn\.lstm/1 checkpoint \(format None\)"):
         load_checkpoint(tmp_path / "other.pt")
     save_checkpoint(m, tmp_path / "plain.pt")  # without history
     assert load_checkpoint(tmp_path / "plain.pt", num_agents=1).checkpoint_history.empty

@@ -78,11 +78,11 @@ def test_weights_closed_form_default():
 
 
 def test_bad_parameters_raise_config_error():
-    with pytest.raises(ConfigError, match=r"filter\.alpha.*> 0"):
+    with pytest.raises(ConfigError, match=r"filter\.predict\.alpha.*> 0"):
         UnscentedPredict(alpha=0.0)
-    with pytest.raises(ConfigError, match=r"filter\.beta.*>= 0"):
+    with pytest.raises(ConfigError, match=r"filter\.predict\.beta.*>= 0"):
         UnscentedPredict(beta=-1.0)
-    with pytest.raises(ConfigError, match=r"filter\.kappa"):
+    with pytest.raises(ConfigError, match=r"filter\.predict\.kappa"):
         UnscentedPredict(kappa=float("nan"))
     step = UnscentedPredict(kappa=-8.0)  # legal until the state dimension is known
     m, O = torch.zeros(1, 1, 8, dtype=D), torch.eye(8, dtype=D).expand(1, 1, 8, 8)
@@ -91,7 +91,7 @@ def test_bad_parameters_raise_config_error():
         def forward(self, x, ctx):
             raise AssertionError("the model must not be called with bad parameters")
 
-    with pytest.raises(ConfigError, match=r"filter\.kappa=-8.0.*Dx=8.*> -8"):
+    with pytest.raises(ConfigError, match=r"filter\.predict\.kappa=-8.0.*Dx=8.*> -8"):
         step(m, O, Boom(8), CTX)
     assert UnscentedPredict().name == "ukf"
     with pytest.raises(dataclasses.FrozenInstanceError):

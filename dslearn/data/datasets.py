@@ -31,7 +31,7 @@ from typing import List, Optional
 import numpy as np
 import pandas as pd
 
-from dslearn.errors import ConfigError, DataFormatError, check_choice
+from dslearn.errors import ConfigError, check_choice
 
 CONVENTIONS = ("benchmark", "physical")
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
@@ -39,6 +39,8 @@ UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 PED_OFFSET = 100_000
 #: name of the data-root key in every study's task config (one name everywhere)
 DATA_ROOT_KEY = "task.data_root"
+#: where a study's config holds its data sets
+DATASETS_KEY = "task.datasets"
 
 
 def ranged(default=dataclasses.MISSING, *, factory=None, **rules):
@@ -146,46 +148,60 @@ def leave_one_out(test_scene: str, pool) -> tuple[str, ...]:
     return tuple(str(s) for s in pool if s != test_scene)
 
 
-def resolve_root(spec: DatasetSpec, data_root) -> tuple[Path, str]:
-    """The folder the data set's relative files are in, and the config key that named it."""
+def resolve_root(spec: DatasetSpec, data_root, root_key: str = DATA_ROOT_KEY,
+                 datasets_key: str = DATASETS_KEY) -> tuple[Path, str]:
+    """The folder the data set's relative files are in, and the config key that named it.
+    ``root_key`` / ``datasets_key`` are the keys of the data folder and of the data sets in the
+    caller's configuration (the studies': ``task.data_root``, ``task.datasets``)."""
     from dslearn.data.ethucy import default_root
 
     if spec.root is None and all(Path(f).is_absolute() for f in spec.files):
-        return Path("/"), f"task.datasets.{spec.name}.files"
+        return Path("/"), f"{datasets_key}.{spec.name}.files"
     if spec.root is not None:
-        root, key = Path(str(spec.root)), f"task.datasets.{spec.name}.root"
+        root, key = Path(str(spec.root)), f"{datasets_key}.{spec.name}.root"
     elif data_root is not None:
-        root, key = Path(str(data_root)), DATA_ROOT_KEY
+        root, key = Path(str(data_root)), root_key
     else:
-        root, key = default_root(), DATA_ROOT_KEY
+        root, key = default_root(root_key), root_key
     if not root.is_dir() and not all(Path(f).is_absolute() for f in spec.files):
         what = "is a file, not a folder" if root.exists() else "does not exist"
         raise ConfigError(f"{key}={str(root)!r} {what}; give the folder holding {', '.join(spec.files)}")
     return root, key
 
 
-def load_dataset(spec: DatasetSpec, data_root=None, convention: str = "benchmark"):
+def check_files(spec: DatasetSpec, data_root=None, root_key: str = DATA_ROOT_KEY,
+                datasets_key: str = DATASETS_KEY) -> list[Path]:
+    """The data set's files, each checked to exist (ConfigError naming the key of its folder)."""
+    root, key = resolve_root(spec, data_root, root_key, datasets_key)
+    paths = []
+    for fname in spec.files:
+        path = root / fname
+        if not path.is_file():
+            what = "is a folder, not" if path.is_dir() else "has no"
+            raise ConfigError(f"{key}={str(root)!r} {what} file {fname} (scene {spec.name})")
+        paths.append(path)
+    return paths
+
+
+def load_dataset(spec: DatasetSpec, data_root=None, convention: str = "benchmark", *,
+                 root_key: str = DATA_ROOT_KEY, datasets_key: str = DATASETS_KEY):
     """Load a data set as a :class:`dslearn.data.ethucy.Scene` (every file strictly checked).
+    ``root_key`` / ``datasets_key``: the caller's config keys, named in the errors (see :func:`resolve_root`).
 
     Raises:
         ConfigError: missing root / file, unknown convention.
-        DataFormatError: a malformed file, or a frame id that is not a multiple of ``frame_step``.
+        DataFormatError: a malformed file, or a frame id that is not a multiple of ``frame_step``
+            (``file:line``).
     """
     from dslearn.data.ethucy import Scene, read_trajectories
 
     check_choice("convention", convention, CONVENTIONS)
-    root, key = resolve_root(spec, data_root)
+    paths = check_files(spec, data_root, root_key, datasets_key)
     dt = spec.step(convention)
     scale = UNITS[spec.units]
     parts = []
-    for k, fname in enumerate(spec.files):
-        path = root / fname
-        if not path.is_file():
-            raise ConfigError(f"{key}={str(root)!r} has no file {fname} (scene {spec.name})")
-        d = read_trajectories(path)
-        off = d["frame"] % spec.frame_step != 0
-        if off.any():
-            raise DataFormatError(f"{path}: frame {int(d.frame[off].iloc[0])} is not a multiple of {spec.frame_step}")
+    for k, (fname, path) in enumerate(zip(spec.files, paths)):
+        d = read_trajectories(path, spec.frame_step, f"{datasets_key}.{spec.name}.frame_step")
         if scale != 1.0:
             d["x"], d["y"] = d["x"] * scale, d["y"] * scale
         step = d["frame"] // spec.frame_step

@@ -77,18 +77,19 @@ def data_available() -> bool:
     return _default_path().is_dir()
 
 
-def default_root() -> Path:
+def default_root(key: str = "task.data_root") -> Path:
     """The data folder: ``$DSLEARN_ETHUCY_ROOT`` if set, else ``<repo>/../shared/data/eth_ucy``.
 
     Raises:
-        ConfigError: naming ``task.data_root`` when the folder does not exist.
+        ConfigError: naming ``key`` (the config key of the data folder: ``task.data_root`` in the
+            studies, ``data_root`` in ``dslearn-train-lstm``) when the folder does not exist.
     """
     env = os.environ.get(ENV_ROOT)
     root = _default_path()
     if not root.is_dir():
         where = f"${ENV_ROOT}={env}" if env else "the default data folder"
         raise ConfigError(
-            f"{where} ({str(root)!r}) does not exist; set task.data_root=<folder> (or ${ENV_ROOT}) to the "
+            f"{where} ({str(root)!r}) does not exist; set {key}=<folder> (or ${ENV_ROOT}) to the "
             "eth_ucy folder, the one holding biwi_eth.txt, crowds_zara01.txt, ..."
         )
     return root
@@ -116,16 +117,19 @@ def _decode(path: Path, raw: bytes) -> str:
         ) from None
 
 
-def read_trajectories(path: str | Path) -> pd.DataFrame:
+def read_trajectories(path: str | Path, frame_step: int | None = None, step_key: str | None = None) -> pd.DataFrame:
     """Read one standard ``frame ped x y`` file strictly.
 
     Every line must have exactly 4 whitespace-separated finite numbers; ``frame`` and ``ped``
     must be integral (``780`` and ``780.0`` are both accepted); frames must not decrease from
-    one line to the next; no ``(frame, ped)`` pair may repeat. Nothing is returned unless the
-    whole file is valid.
+    one line to the next; no ``(frame, ped)`` pair may repeat; with ``frame_step``, every frame
+    must be a multiple of it. Nothing is returned unless the whole file is valid.
 
     Args:
         path: the file.
+        frame_step: frames between a pedestrian's rows (``None``: not checked).
+        step_key: the config key that set ``frame_step``, named in the error (e.g.
+            ``task.datasets.zara1.frame_step``).
     Returns:
         DataFrame with columns ``frame`` (int64), ``ped`` (int64), ``x``, ``y`` (float64, m),
         sorted by ``(frame, ped)``.
@@ -171,6 +175,15 @@ def read_trajectories(path: str | Path) -> pd.DataFrame:
         raise DataFormatError(
             f"{path}:{i + 1}: frame {frame[i]} after frame {frame[i - 1]} (frames must not decrease)"
         )
+    if frame_step is not None:
+        off = np.nonzero(frame % int(frame_step) != 0)[0]
+        if off.size:
+            i = int(off[0])
+            key = f", {step_key}" if step_key else ""
+            raise DataFormatError(
+                f"{path}:{i + 1}: frame {frame[i]} is not a multiple of {int(frame_step)} (the frame step{key}: "
+                "frames between a pedestrian's rows)"
+            )
     df = pd.DataFrame({"frame": frame, "ped": ped, "x": vals[:, 2], "y": vals[:, 3], "line": np.arange(1, n + 1)})
     dup = df.duplicated(["frame", "ped"], keep="first")
     if dup.any():

@@ -47,18 +47,22 @@ from dslearn.models.base import MotionModel
 from dslearn.types import StepContext, safe_cholesky, spd_inverse, symmetrize
 
 
+#: where the unscented parameters live in the configuration (``conf/filter/ukf.yaml``)
+KEY = "filter.predict"
+
+
 def check_unscented(alpha: float, beta: float, kappa: float, state_dim: int | None = None) -> None:
     r"""Raise :class:`~dslearn.errors.ConfigError` unless :math:`\alpha > 0`, :math:`\beta \ge 0`,
     :math:`\kappa` finite and, when ``state_dim`` is given, :math:`D_x + \lambda = \alpha^2 (D_x + \kappa) > 0`
-    (i.e. :math:`\kappa > -D_x`)."""
-    check_positive("filter.alpha", alpha)
-    check_positive("filter.beta", beta, strict=False)
-    check_finite("filter.kappa", kappa)
+    (i.e. :math:`\kappa > -D_x`). The messages name the keys ``filter.predict.alpha|beta|kappa``."""
+    check_positive(f"{KEY}.alpha", alpha)
+    check_positive(f"{KEY}.beta", beta, strict=False)
+    check_finite(f"{KEY}.kappa", kappa)
     if state_dim is not None and not float(state_dim) + float(kappa) > 0:
         raise ConfigError(
-            f"filter.kappa={kappa!r} with state dimension Dx={state_dim} gives Dx + lambda = "
+            f"{KEY}.kappa={kappa!r} with state dimension Dx={state_dim} gives Dx + lambda = "
             f"alpha^2 (Dx + kappa) = {float(alpha) ** 2 * (state_dim + float(kappa)):g}; it must be > 0: "
-            f"use filter.kappa > {-state_dim}"
+            f"use {KEY}.kappa > {-state_dim}"
         )
 
 
@@ -184,8 +188,9 @@ class UnscentedPredict:
     :func:`dslearn.filters.information.predict` (``(mean, omega, model, ctx, full=False)``).
 
     Raises :class:`~dslearn.errors.ConfigError` on construction for ``alpha <= 0``, ``beta < 0``
-    or a non-finite ``kappa`` (fields ``filter.alpha`` / ``filter.beta`` / ``filter.kappa``), and on
-    the first call whose state dimension ``Dx`` has ``Dx + kappa <= 0``, before any model call.
+    or a non-finite ``kappa`` (fields ``filter.predict.alpha`` / ``.beta`` / ``.kappa``), and in
+    :meth:`check_state_dim` or on the first call whose state dimension ``Dx`` has ``Dx + kappa <= 0``,
+    before any model call.
     """
 
     alpha: float = 1.0
@@ -195,6 +200,10 @@ class UnscentedPredict:
 
     def __post_init__(self) -> None:
         check_unscented(self.alpha, self.beta, self.kappa)
+
+    def check_state_dim(self, state_dim: int) -> None:
+        """ConfigError unless the parameters suit a state of ``state_dim`` (the start-up check's hook)."""
+        check_unscented(self.alpha, self.beta, self.kappa, int(state_dim))
 
     def __call__(self, mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext, full: bool = False):
         return ukf_predict(mean, omega, model, ctx, full, self.alpha, self.beta, self.kappa)

@@ -69,8 +69,7 @@ class AggregatedGPMotion(MotionModel):
         super().__init__()
         if not isinstance(base, GPMotionModel):
             raise ConfigError("AggregatedGPMotion wraps a GPMotionModel (a model=gp* option)")
-        check_choice("model.aggregation", method, RULES)
-        check_choice("model.aggregation_jacobian", jacobian, JACOBIANS)
+        check_aggregation(method, jacobian)
         self.base = base
         self.method, self.normalise_beta, self.jacobian_mode = method, bool(normalise_beta), jacobian
         self.state_dim = base.state_dim
@@ -172,12 +171,26 @@ class AggregatedGPMotion(MotionModel):
 
 
 # ------------------------------------------------------------------------ config + runner
+def check_aggregation(method: str, jacobian: str = "exact") -> None:
+    """ConfigError naming ``model.aggregation`` / ``model.aggregation_jacobian`` and the allowed values."""
+    if method == "grbcm":
+        raise ConfigError(
+            f"model.aggregation='grbcm' is not available for the aggregated GP motion model: grBCM needs a "
+            f"communication expert (a data subset shared by every node), which this setting does not have; "
+            f"choose one of {list(RULES)}"
+        )
+    check_choice("model.aggregation", method, RULES)
+    check_choice("model.aggregation_jacobian", jacobian, JACOBIANS)
+
+
 def aggregated_for_scenario(*, scenario, num_nodes: int, dtype, device, aggregation: str = "rbcm",
                             normalise_beta: bool = False, aggregation_jacobian: str = "exact",
                             **gp_keys) -> AggregatedGPMotion:
     """The config factory (``conf/model/gp*_rbcm.yaml``): the GP keys build every node's
     :class:`~dslearn.models.gp.GPMotionModel`; ``aggregation`` fuses their predictions."""
+    check_aggregation(str(aggregation), str(aggregation_jacobian))  # before the node GPs are built
     if str(gp_keys.get("noise", "latent")) == "adaptive":
-        raise ConfigError("model.noise=adaptive is not available for an aggregated GP; use latent or predictive")
+        raise ConfigError("model.noise='adaptive' is not available for an aggregated GP (model.aggregation="
+                          f"{aggregation}); choose model.noise=latent or model.noise=predictive")
     base = GPMotionModel(scenario.state_dim, num_nodes, dtype=dtype, device=device, **gp_keys)
     return AggregatedGPMotion(base, str(aggregation), bool(normalise_beta), str(aggregation_jacobian))

@@ -556,6 +556,83 @@ def _same(a, b) -> bool:
     return a == b
 
 
+def _read_blob(path: Path) -> dict:
+    """``torch.load(weights_only=True)`` of ``path``: DataFormatError naming the file for a missing,
+    empty, truncated or corrupt file, and for one that pickles Python objects (which could run
+    code when loaded: refused, never unpickled), or whose content is not a checkpoint dict."""
+    import pickle
+    import re
+    import warnings
+
+    from dslearn.errors import DataFormatError
+
+    if path.is_dir():
+        raise DataFormatError(f"{path}: is a folder, not an LSTM checkpoint file")
+    if not path.exists():
+        raise DataFormatError(f"{path}: no such LSTM checkpoint file")
+    try:
+        size = path.stat().st_size
+    except OSError as e:
+        raise DataFormatError(f"{path}: cannot be read ({e.strerror or e})") from None
+    if size == 0:
+        raise DataFormatError(f"{path}: empty file, not an LSTM checkpoint")
+    try:
+        with warnings.catch_warnings():  # torch's notes on pickle protocols: the error below says it all
+            warnings.simplefilter("ignore")
+            blob = torch.load(path, weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError as e:
+        text = str(e)
+        if "Weights only load failed" in text:
+            g = re.search(r"GLOBAL (\S+)", text)
+            op = re.search(r"(Unsupported operand \S+)", text)
+            what = (f"it pickles the Python object {g.group(1)}, which could run code when loaded" if g else
+                    f"not a weights-only pickle ({op.group(1) if op else 'the safe loader cannot read it'})")
+            raise DataFormatError(
+                f"{path}: refused: {what}; an LSTM checkpoint holds only tensors and plain values "
+                "(written by dslearn-train-lstm / save_checkpoint)"
+            ) from None
+        raise DataFormatError(f"{path}: not a readable torch checkpoint (truncated or corrupt: UnpicklingError: "
+                              f"{' '.join(text.split())[:160]})") from None
+    except PermissionError:
+        raise DataFormatError(f"{path}: cannot be read (permission denied)") from None
+    except Exception as e:  # noqa: BLE001 - EOFError, zip/stream errors, OSError(EINVAL), KeyError, ...
+        why = " ".join(str(e).split())[:160]
+        raise DataFormatError(
+            f"{path}: not a readable torch checkpoint (truncated or corrupt: {type(e).__name__}{': ' + why if why else ''})"
+        ) from None
+    if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
+        got = f"format {blob.get('format')!r}" if isinstance(blob, dict) else f"a {type(blob).__name__}"
+        raise DataFormatError(f"{path}: not a {CHECKPOINT_FORMAT} checkpoint ({got}); write one with dslearn-train-lstm")
+    return blob
+
+
+def _check_blob(path: Path, blob: dict) -> tuple[dict, dict, dict]:
+    """The checkpoint's ``(hparams, state_dict, history)``, each checked for its form (DataFormatError)."""
+    from dslearn.errors import DataFormatError
+
+    saved = blob.get("hparams")
+    if not isinstance(saved, dict):
+        raise DataFormatError(f"{path}: hparams is {type(saved).__name__}, not a mapping of {list(HPARAMS)}")
+    missing, unknown = [k for k in HPARAMS if k not in saved], sorted(str(k) for k in saved if k not in HPARAMS)
+    if missing or unknown:
+        raise DataFormatError(
+            f"{path}: hparams " + "; ".join(filter(None, [f"lacks {missing}" if missing else "",
+                                                         f"has unknown keys {unknown}" if unknown else ""]))
+            + f" (expected {list(HPARAMS)})"
+        )
+    state = blob.get("state_dict")
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, Tensor) for k, v in state.items()):
+        raise DataFormatError(f"{path}: state_dict is not a mapping of parameter names to tensors")
+    for k, v in state.items():
+        if v.is_floating_point() and not bool(torch.isfinite(v).all()):
+            raise DataFormatError(f"{path}: state_dict[{k!r}] holds NaN or infinite weights")
+    history = blob.get("history") or {}
+    ok = isinstance(history, dict) and all(isinstance(v, (list, tuple)) for v in history.values())
+    if not ok or len({len(v) for v in history.values()}) > 1:
+        raise DataFormatError(f"{path}: history is not a mapping of equally long per-epoch lists")
+    return saved, state, history
+
+
 def load_checkpoint(
     path: str | Path,
     model: SocialLSTM | None = None,
@@ -569,19 +646,44 @@ def load_checkpoint(
     Into ``model`` if given (its hyperparameters must equal the saved ones, else
     :class:`ConfigError` naming every mismatch), else into a new :class:`SocialLSTM` built
     from the saved hyperparameters with ``num_agents``, ``dtype``, ``device``.
+
+    Raises:
+        DataFormatError: naming the file: missing, a folder, empty, truncated or corrupt; a pickle
+            of Python objects (refused unread: it could run code); not a ``dslearn.lstm/1``
+            checkpoint; hyperparameters, weights or history of the wrong form; weights whose
+            names or shapes disagree with the saved hyperparameters; non-finite weights.
+        ConfigError: naming the file: the given ``model``'s hyperparameters differ from the saved ones.
     """
-    blob = torch.load(Path(path), weights_only=True, map_location="cpu")
-    if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
-        raise ConfigError(f"checkpoint {str(path)!r} is not a {CHECKPOINT_FORMAT} checkpoint")
-    saved = blob["hparams"]
+    from dslearn.errors import DataFormatError
+
+    path = Path(path)
+    saved, state, history = _check_blob(path, _read_blob(path))
     if model is None:
-        model = SocialLSTM(num_agents, **saved, dtype=dtype, device=device)
+        try:
+            model = SocialLSTM(num_agents, **saved, dtype=dtype, device=device)
+        except ConfigError as e:  # the saved values themselves are out of range
+            raise DataFormatError(f"{path}: invalid saved hyperparameters: {e}") from None
     else:
         mine = model.hparams()
         bad = [f"{k}: checkpoint {saved.get(k)!r} vs model {mine[k]!r}" for k in HPARAMS if not _same(saved.get(k), mine[k])]
         if bad:
             raise ConfigError(f"checkpoint {str(path)!r} does not match the model's lstm hyperparameters: " + "; ".join(bad))
-    model.load_state_dict(blob["state_dict"])
-    model.checkpoint_history = pd.DataFrame(blob.get("history") or {})
+    own = model.state_dict()
+    missing, unexpected = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+    shapes = [f"{k}: file {tuple(state[k].shape)} vs hparams {tuple(own[k].shape)}"
+              for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
+    if missing or unexpected or shapes:
+        hp = ", ".join(f"{k}={saved[k]!r}" for k in ("pooling", "embed", "hidden", "grid"))
+        more = f"; ... ({len(shapes) - 3} more)" if len(shapes) > 3 else ""
+        raise DataFormatError(
+            f"{path}: the weights do not match the saved hyperparameters ({hp}): "
+            + "; ".join(filter(None, [f"missing {missing}" if missing else "",
+                                      f"unexpected {unexpected}" if unexpected else "", *shapes[:3]])) + more
+        )
+    try:
+        model.load_state_dict(state)
+    except (RuntimeError, ValueError, TypeError) as e:
+        raise DataFormatError(f"{path}: the weights cannot be loaded ({' '.join(str(e).split())[:200]})") from None
+    model.checkpoint_history = pd.DataFrame(history)
     model.eval()
     return model

@@ -22,7 +22,11 @@ What is checked:
 * for the core study (``task.name`` = yu or yu_faults): ``scenario``, ``network``, ``model``,
   ``observation``, ``consensus``, ``data``, ``filter`` — closed schemas (unknown keys fail) with
   range checks. Other tasks' groups (tracker, aggregation, gp_input, lstm, scenario s1..s3, ...)
-  stay open: their studies validate them.
+  stay open: their studies validate them;
+* then the core study's parts are built (:func:`check_parts`: models on the ``meta`` device, no
+  memory), so that what only a constructor can check (the aggregation rule of an aggregated GP,
+  the UKF's parameters against the state dimension, the network's connectivity, ...) is refused
+  up front too, naming the full key.
 """
 
 from __future__ import annotations
@@ -135,6 +139,7 @@ class ModelSchema(PartSchema):
     capacity: Optional[int] = None
     factor_dtype: Optional[str] = None  # exact GP: null (the run's dtype) | float32 (the Cholesky factor)
     factor: Optional[str] = None  # exact GP: auto | inverse | cholesky (what the factor buffer holds)
+    inputs: Optional[str] = None  # exact / window GP: mean (linearised at the mean) | belief (averaged over N(y, P))
     # scalable variants (dslearn.learning.sparse)
     variant: Optional[str] = None
     window: Optional[int] = None
@@ -309,6 +314,7 @@ def validate_config(cfg: DictConfig) -> None:
     validate_task(cfg)
     if cfg.task.name in CORE_TASKS:
         check_memory(cfg, r.max_memory_gb)
+        check_parts(cfg)
 
 
 def check_entry(entry) -> None:
@@ -538,6 +544,75 @@ def validate_core(cfg: DictConfig) -> None:
     check_positive("filter.prior_vel_std", fi.prior_vel_std)
     if fi.learn_gate_std is not None:
         check_positive("filter.learn_gate_std", fi.learn_gate_std)
+
+
+_PARTS_CACHE: dict[str, str | None] = {}
+#: the groups the core study builds its parts from (the key of :func:`check_parts`' memo)
+PART_GROUPS = ("scenario", "network", "model", "observation", "consensus", "filter")
+
+
+def check_parts(cfg: DictConfig) -> None:
+    """Build the core study's parts from ``cfg`` as the run does, so that every refusal of a
+    constructor (which depends on the configuration only) happens in the start-up check.
+
+    Built: the scenario, the network (connectivity), the motion model (``task=yu``; ``yu_faults``
+    composes ``task.models`` itself) and the observation model, on PyTorch's ``meta`` device (shapes
+    only: no memory, whatever the buffer sizes), the fusion (``task=yu``) and the filter's
+    prediction step, checked against the scenario's state dimension (the UKF's ``kappa``). The
+    result is memoised by the groups' content (a sweep repeats the same parts). Raises the
+    constructors' :class:`ConfigError`; any other exception (a constructor that cannot run on the
+    ``meta`` device) is left to the run, which builds the parts for real.
+    """
+    import warnings
+
+    nodes = {}
+    for k in PART_GROUPS:
+        node = cfg.get(k)
+        try:
+            nodes[k] = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+        except OmegaConfBaseException as e:
+            raise _field_error(k, e) from None
+    try:
+        key = json.dumps([str(cfg.task.name), str(cfg.get("dtype")), nodes], sort_keys=True, default=repr)
+    except (TypeError, ValueError):
+        key = None
+    if key is None or key not in _PARTS_CACHE:
+        err = None
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                _build_parts(cfg)
+        except ConfigError as e:
+            err = str(e)
+        except Exception:  # noqa: BLE001 - not a configuration refusal: the run reports it
+            err = None
+        if key is None:
+            if err is not None:
+                raise ConfigError(err)
+            return
+        if len(_PARTS_CACHE) > 1024:
+            _PARTS_CACHE.clear()
+        _PARTS_CACHE[key] = err
+    if _PARTS_CACHE[key] is not None:
+        raise ConfigError(_PARTS_CACHE[key])
+
+
+def _build_parts(cfg: DictConfig) -> None:
+    import torch
+
+    from dslearn import compose as C
+
+    dtype, meta = C.resolve_dtype(cfg.dtype), torch.device("meta")
+    scenario = C.build_scenario(cfg)
+    network = C.build_network(cfg)
+    if str(cfg.task.name) == "yu":
+        C.build_motion_model(cfg.model, scenario, network, dtype, meta)
+        C.build_fusion(cfg.consensus, network)
+    C.build_observation(cfg.observation, network, dtype, meta)
+    step = C.build_predict(cfg)
+    check = getattr(step, "check_state_dim", None)
+    if check is not None:
+        check(scenario.state_dim)
 
 
 def _check_area(name: str, area) -> None:
