@@ -16,7 +16,10 @@ Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
   reference  Yu protocol, fast path vs the straightforward reference (per-node loops, GPyTorch
              ExactGP refit from scratch at every step, autograd Jacobians) on the SAME reduced
              protocol (``--ref-train`` + ``--ref-test`` episodes), both timed in one process;
-             models x fusions of ``--models`` / ``--fusions``; also checks the numbers agree.
+             models x fusions of ``--ref-models`` / ``--ref-fusions`` (default: every model and
+             every strategy the reference implements); checks the numbers agree: the command
+             exits with status 1, naming the item and row, when any metric value differs by more
+             than ``dslearn.reference.REFERENCE_TOL`` (relative, absolute below 1) or an item fails.
   protocol   the full Table I + II protocol (200 train + 50 test episodes, 10 nodes) for every
              model x fusion, fast path only, spread over ``--workers`` processes (1 thread each).
   gp         one online GP step (predict with Jacobian and variance + append) per node at data-set
@@ -108,7 +111,10 @@ def _compose(overrides):
 # ------------------------------------------------------------------------------------------
 # workload items (each runs in a child process; returns a list of row dicts)
 def item_reference(model: str, fusion: str, train: int, test: int, device: str = "cpu") -> list[dict]:
-    from dslearn.reference import ReferenceYu
+    """One model x fusion through the fast path and the reference, in this process: both timed, and
+    their rows compared (:func:`dslearn.reference.compare_results`: ``max_diff`` against
+    :data:`dslearn.reference.REFERENCE_TOL`, ``worst`` names the row)."""
+    from dslearn.reference import REFERENCE_TOL, ReferenceYu, compare_results
     from dslearn.studies.yu import YuStudy
 
     ov = [f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}", f"data.test_episodes={test}", f"device={device}"]
@@ -120,12 +126,30 @@ def item_reference(model: str, fusion: str, train: int, test: int, device: str =
     t0 = time.perf_counter()
     ref = ReferenceYu.from_config(cfg).run()
     t_ref = time.perf_counter() - t0
-    diff = float((fast["value"].to_numpy() - ref["value"].to_numpy()).__abs__().max())
+    cmp = compare_results(fast, ref)
+    diff = float(abs(fast["value"].to_numpy() - ref["value"].to_numpy()).max()) if len(fast) == len(ref) else float("nan")
     learn = model.startswith("gp")
     node_steps = 10 * 12 * ((train if learn else 0) + test)
     return [dict(workload="reference", item=f"yu {model}/{fusion} {train}+{test} ep", nodes=10, wall_s=t_fast,
                  ms_per_node_step=1e3 * t_fast / node_steps, reference_s=t_ref, ratio=t_ref / t_fast,
-                 reference_note="same reduced protocol, same process", max_abs_diff=diff, peak_mb=_peak_mb())]
+                 reference_note="same reduced protocol, same process" + (
+                     "" if cmp["max_diff"] <= REFERENCE_TOL else f"; DIFFERS beyond {REFERENCE_TOL:g}: {cmp['worst']}"),
+                 max_abs_diff=diff, max_diff=cmp["max_diff"], worst=cmp["worst"], peak_mb=_peak_mb())]
+
+
+def reference_failures(rows: list[dict]) -> list[str]:
+    """The ``reference`` items whose fast and reference results differ beyond
+    :data:`dslearn.reference.REFERENCE_TOL` (or that failed to run), one line each."""
+    from dslearn.reference import REFERENCE_TOL
+
+    out = []
+    for r in rows:
+        if r.get("workload") != "reference":
+            continue
+        d = r.get("max_diff")
+        if d is None or not d <= REFERENCE_TOL:
+            out.append(f"{r['item']}: max_diff {d} > {REFERENCE_TOL:g}" + (f" ({r['worst']})" if r.get("worst") else ""))
+    return out
 
 
 def item_protocol(model: str, fusion: str, train: int, test: int, device: str = "cpu", dtype: str = "float64",
@@ -330,7 +354,7 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
                ms_per_step=1e3 * wall / steps, ms_per_node_step=1e3 * wall / (steps * nodes),
                peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device))
     if ref_steps:
-        from dslearn.reference import ReferenceGP, ReferenceYu
+        from dslearn.reference import ReferenceFusion, ReferenceGP, ReferenceYu
         from dslearn.sim.scenario import Episodes
 
         mc = cfg.model
@@ -339,8 +363,8 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
         part = Episodes(ep.states[:, : ref_steps + 1].cpu(), ep.meas[:, :, : ref_steps + 1].cpu(), ep.visible[:, :, : ref_steps + 1].cpu())
         ref = ReferenceYu(cfg)
         t0 = time.perf_counter()
-        ref._track_one(part.measurements, 0, ref_nodes, fusion, fusion.weights.double(), float(obs.noise_std) ** 2,
-                       init[0][:, 0].cpu(), init[1][:, 0].cpu(), learn=True, gate=None)
+        ref._track_one(part.measurements, 0, ref_nodes, ReferenceFusion.from_config(cfg.consensus, network.adjacency),
+                       float(obs.noise_std) ** 2, init[0][:, 0].cpu(), init[1][:, 0].cpu(), learn=True, gate=None)
         t_ref = time.perf_counter() - t0
         part_fast = Episodes(ep.states[:, : ref_steps + 1], ep.meas[:, :, : ref_steps + 1], ep.visible[:, :, : ref_steps + 1])
         _, network2, model2, obs2, fusion2 = study.build()
@@ -451,8 +475,8 @@ def plan(workloads, quick: bool, a) -> list:
             steps.append(("item_grid", dict(experiment="yu_table1")))
     if "reference" in workloads:
         tr, te = (2, 2) if quick else (a.ref_train, a.ref_test)
-        for m in models:
-            for f in fusions:
+        for m in a.ref_models.split(","):
+            for f in a.ref_fusions.split(","):
                 steps.append(("item_reference", dict(model=m, fusion=f, train=tr, test=te, device=a.device)))
     if "gp" in workloads:
         exact = (300, 600, 1200, 2400) if quick else (300, 600, 1200, 2400, 5000, 10000)
@@ -533,6 +557,10 @@ def main(argv=None) -> None:
     p.add_argument("--test", type=int, default=50)
     p.add_argument("--ref-train", type=int, default=5, help="reference workload: training episodes (reduced protocol)")
     p.add_argument("--ref-test", type=int, default=5, help="reference workload: test episodes (reduced protocol)")
+    p.add_argument("--ref-models", default="lin,sfm,gp,gp_increment,gp_window",
+                   help="reference workload: models (every one the reference implements)")
+    p.add_argument("--ref-fusions", default="individual,ce,cm,ci,hybrid,hybrid_nodes,centralized",
+                   help="reference workload: consensus options (every strategy; hybrid_nodes: omega = nodes)")
     p.add_argument("--workers", type=int, default=2, help="concurrent processes for the protocol / dtype items")
     p.add_argument("--threads", type=int, default=1, help="torch threads per process")
     p.add_argument("--device", default="cpu")
@@ -572,6 +600,11 @@ def main(argv=None) -> None:
     for k, v in info.items():
         df[k] = v
     write_outputs(df, Path(a.out))
+    bad = reference_failures(rows)
+    if bad:
+        print("\ndslearn-bench: the fast path and the reference differ (dslearn.reference.REFERENCE_TOL) in:\n  "
+              + "\n  ".join(bad), file=sys.stderr, flush=True)
+        raise SystemExit(1)
 
 
 def write_outputs(df: pd.DataFrame, out: Path) -> str:
@@ -590,7 +623,7 @@ def write_outputs(df: pd.DataFrame, out: Path) -> str:
                      f"ratio {ref.reference_s.sum() / ref.wall_s.sum():.1f}x (same process, same protocol)")
     cols = [c for c in ("workload", "item", "n", "nodes", "wall_s", "ms_per_step", "ms_per_node_step", "reference_s",
                         "reference_ms_per_step", "ratio",
-                        "max_abs_diff", "track_err", "pred_err", "peak_mb", "cuda_peak_mb", "reference_note") if c in df]
+                        "max_abs_diff", "max_diff", "track_err", "pred_err", "peak_mb", "cuda_peak_mb", "reference_note") if c in df]
     show = df[cols].copy()
     for c in show.columns:
         if show[c].dtype.kind == "f":

@@ -1,4 +1,5 @@
-"""Fast paths vs the straightforward reference (dslearn.reference) on the same seeds."""
+"""Fast paths vs the straightforward reference (dslearn.reference) on the same seeds: the GP pieces here;
+the whole study for every model and fusion in tests/test_reference.py."""
 
 import numpy as np
 import pytest
@@ -16,22 +17,6 @@ def _opts(model, consensus, train, test, **kw):
     from dslearn.studies.yu import YuStudy
 
     return YuStudy.from_options(model=model, consensus=consensus, train_episodes=train, test_episodes=test, **kw)
-
-
-@pytest.mark.parametrize("model,consensus,train", [("gp_increment", "hybrid", 1), ("gp", "individual", 1), ("lin", "hybrid", 0)])
-def test_fast_study_equals_reference(model, consensus, train):
-    """Batched tracker + incremental GP == per-node loops + GPyTorch ExactGP refit every step
-    (6 nodes: 4 sensors + 2 relays, to keep the reference quick)."""
-    from dslearn.reference import ReferenceYu
-
-    kw = {"network.num_comm": 2, "network.comm_radius": 6.0}
-    fast = _opts(model, consensus, train, 1, **kw).run()
-    ref = ReferenceYu.from_config(_opts(model, consensus, train, 1, **kw).cfg).run()
-    assert len(fast) == len(ref)
-    for col in ("model", "consensus", "node", "episode", "metric"):
-        assert (fast[col].to_numpy() == ref[col].to_numpy()).all()
-    a, b = fast["value"].to_numpy(), ref["value"].to_numpy()
-    np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-9)
 
 
 @pytest.mark.parametrize("factor,cap", [("cholesky", 392), ("inverse", 396)])
