@@ -47,6 +47,11 @@ def check(cfg: DictConfig) -> None:
             isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v <= 1.0 for v in pair)
         if not ok:
             raise ConfigError(f"task.joint contains {pair!r}: must be [link_fail, node_fail] in [0, 1]")
+    omega = cfg.consensus.get("omega", "one")
+    if str(omega) not in ("one", "1", "1.0"):
+        raise ConfigError(f"consensus.omega={omega!r} is not used by task=yu_faults: every fusion of task.fusions "
+                          "takes omega from its own option (conf/consensus/<name>.yaml); list hybrid_nodes "
+                          "(omega = number of nodes) in task.fusions instead")
 
 
 register_task("yu_faults", FaultTask, check)

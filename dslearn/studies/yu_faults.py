@@ -60,6 +60,20 @@ def settings(t) -> list[dict]:
     return out
 
 
+def grid_fusions(cfg: DictConfig) -> dict[str, DictConfig]:
+    """The config node of every fusion of ``task.fusions``, composed from its own ``consensus`` option.
+
+    Each keeps its own ``omega`` (``hybrid``: 1, ``hybrid_nodes``: S) and type; only the number of
+    rounds ``L`` is the grid's, ``consensus.iterations``. The weight rule of the option is not used:
+    :class:`~dslearn.fusion.faults.FaultyFusion` recomputes the weights on every step's live graph
+    (``task.weights``). A root ``consensus.omega`` other than ``one`` would apply to no fusion: the
+    schema (:mod:`dslearn.schemas.yu_faults`) refuses it; the grid lists the omega variants as
+    options (``task.fusions=[hybrid,hybrid_nodes]``).
+    """
+    same = (f"consensus.iterations={int(cfg.consensus.iterations)}", "consensus.weights=uniform")
+    return group_options("consensus", list(cfg.task.fusions), same)
+
+
 def run(cfg: DictConfig) -> pd.DataFrame:
     """Task entry point (see :mod:`dslearn.run`); ``cfg.task`` is checked by :mod:`dslearn.schemas.yu_faults`."""
     t = cfg.task
@@ -70,9 +84,7 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     s = network.num_nodes
     ctx = scenario.ctx()
     models = group_options("model", list(t.models))
-    same = (f"consensus.iterations={int(cfg.consensus.iterations)}", f"consensus.omega={cfg.consensus.omega}",
-            "consensus.weights=uniform")
-    fusions = group_options("consensus", list(t.fusions), same)
+    fusions = grid_fusions(cfg)
     grid = settings(t)
     cells = len(grid) * len(t.models) * len(t.fusions)
     frames, k, t0 = [], 0, time.perf_counter()
