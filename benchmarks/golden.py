@@ -3,13 +3,16 @@
     python benchmarks/golden.py record --out DIR     # run them all, write DIR/<name>.csv.gz + DIR/manifest.json
     python benchmarks/golden.py check  [--out DIR]   # run them again and compare with DIR (default: benchmarks/golden)
     python benchmarks/golden.py check --only yu_default,jiang_small
+    python benchmarks/golden.py check --rtol 1e-9   # CI: pass where every value is within the tolerance
 
 Each small run is one ``dslearn-run`` command (below). Its ``results.csv`` is reduced to a canonical
 table: timing rows (wall clock) dropped, rows sorted by every key column, values written with 17
 significant digits, so equal numbers give equal files. ``check`` reports per run whether the table is
 bit-identical (same SHA-256), else the largest absolute and relative difference of ``value`` over the
 rows the two share, and rows only on one side. Float results are bit-identical only on the same CPU
-kernel path and library versions (the manifest records them); across machines read the differences.
+kernel path and library versions (the manifest records them); across machines read the differences, or
+give ``--rtol``: a run then passes when it has the same rows and every value is within
+``atol + rtol * |golden|`` (``--atol``, default 1e-12), which is what CI checks.
 The ETH/UCY runs need the data (``$DSLEARN_ETHUCY_ROOT`` or ``../shared/data/eth_ucy``) and are
 skipped without it.
 """
@@ -123,9 +126,11 @@ def record(out: Path, only: str | None) -> None:
     print(f"wrote {out}/manifest.json")
 
 
-def compare(old: str, new: str) -> str:
+def compare(old: str, new: str, rtol: float | None = None, atol: float = 1e-12) -> tuple[str, bool]:
+    """Verdict and whether it passes: bit-identical, or (with ``rtol``) the same rows and every value
+    within ``atol + rtol * |golden|``."""
     if old == new:
-        return "bit-identical"
+        return "bit-identical", True
     a, b = pd.read_csv(io.StringIO(old)), pd.read_csv(io.StringIO(new))
     keys = [c for c in a.columns if c != "value"]
     if list(a.columns) != list(b.columns):
@@ -137,22 +142,27 @@ def compare(old: str, new: str) -> str:
     d = (va - vb).abs()
     rel = d / va.abs().clip(lower=1e-300)
     only_old, only_new = int((m["_merge"] == "left_only").sum()), int((m["_merge"] == "right_only").sum())
-    return (f"DIFFERENT: max |diff| {d.max():.3g}, max rel {rel.max():.3g} over {len(both)} shared rows; "
-            f"{only_old} rows only in the golden file, {only_new} only in the new run")
+    same_nan = va.isna() & vb.isna()
+    within = bool(rtol is not None and only_old == only_new == 0
+                  and ((d <= atol + rtol * va.abs()) | same_nan).all())
+    label = f"within rtol {rtol:g}" if within else "DIFFERENT"
+    return (f"{label}: max |diff| {d.max():.3g}, max rel {rel.max():.3g} over {len(both)} shared rows; "
+            f"{only_old} rows only in the golden file, {only_new} only in the new run"), within
 
 
-def check(out: Path, only: str | None) -> int:
+def check(out: Path, only: str | None, rtol: float | None = None, atol: float = 1e-12) -> int:
     manifest = json.loads((out / "manifest.json").read_text())
     bad = 0
     with tempfile.TemporaryDirectory() as tmp:
         for name in _select(only):
             if name not in manifest["runs"]:
                 print(f"{name}: not recorded")
+                bad += 1
                 continue
             old = gzip.decompress((out / f"{name}.csv.gz").read_bytes()).decode()
             new, wall = run_one(name, Path(tmp))
-            verdict = compare(old, new)
-            bad += verdict != "bit-identical"
+            verdict, ok = compare(old, new, rtol, atol)
+            bad += not ok
             print(f"{name}: {verdict} ({wall:.1f} s)")
     return 1 if bad else 0
 
@@ -162,13 +172,16 @@ def main(argv=None) -> None:
     p.add_argument("command", choices=["record", "check"])
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"golden folder (default {DEFAULT_OUT.relative_to(ROOT)})")
     p.add_argument("--only", default=None, help="comma-separated run names")
+    p.add_argument("--rtol", type=float, default=None,
+                   help="check: pass a run whose values are all within atol + rtol*|golden| (default: bit-identity)")
+    p.add_argument("--atol", type=float, default=1e-12, help="check: absolute part of the tolerance (with --rtol)")
     a = p.parse_args(argv)
     if a.command == "record":
         if "--out" not in (argv if argv is not None else sys.argv[1:]):
             p.error("record needs --out DIR (it never writes over the committed golden files by default)")
         record(a.out, a.only)
     else:
-        sys.exit(check(a.out, a.only))
+        sys.exit(check(a.out, a.only, a.rtol, a.atol))
 
 
 if __name__ == "__main__":

@@ -103,24 +103,34 @@ def test_jiang_every_option_composes_and_instantiates():
 
 
 def test_braga_weight_options_compose_and_build():
-    from dslearn.fusion.weights import half_max_degree, max_degree, metropolis
+    """Every rule of ``task.consensus.weights`` composes, passes the checks and builds the matrix
+    written out by hand: on the paper's finger four (edges 0-1, 0-2, 2-3; degrees 2, 1, 2, 1), where
+    1/(2 d_max) is Eq. (26) and Metropolis equals 1/(1 + d_max), and on a graph where those two
+    differ (edges 0-1, 0-2, 0-3, 1-2; degrees 3, 2, 2, 1: the edge 1-2 joins two nodes below d_max)."""
     from dslearn.learning.online_em import tbn_params
 
-    eq26 = [[0.5, 0.25, 0.25, 0.0], [0.25, 0.75, 0.0, 0.0], [0.25, 0.0, 0.5, 0.25], [0.0, 0.0, 0.25, 0.75]]
-    built = {}
-    for rule in ("half_max_degree", "max_degree_core", "metropolis", "matrix"):
-        over = [f"task.consensus.weights={rule}"] + ([f"task.consensus.matrix={eq26}".replace(" ", "")]
-                                                      if rule == "matrix" else [])
+    def built(rule, *over):
+        over = [f"task.consensus.weights={rule}", *over]
         cfg = _compose("braga_tbn", *over)
         validate_config(cfg)
-        built[rule] = tbn_params(cfg.task)
-    adj = built["half_max_degree"]["adj"]
-    assert torch.equal(built["half_max_degree"]["weights"], half_max_degree(adj))
-    assert torch.equal(built["max_degree_core"]["weights"], max_degree(adj))
-    assert torch.equal(built["metropolis"]["weights"], metropolis(adj))
-    torch.testing.assert_close(built["matrix"]["weights"], torch.tensor(eq26, dtype=torch.float64), rtol=0, atol=0)
-    torch.testing.assert_close(built["half_max_degree"]["weights"], torch.tensor(eq26, dtype=torch.float64),
-                               rtol=0, atol=1e-15)  # the paper's Eq. (26)
+        return tbn_params(cfg.task)["weights"]
+
+    def same(w, rows):
+        torch.testing.assert_close(w, torch.tensor(rows, dtype=torch.float64), rtol=0, atol=1e-15)
+
+    a, b, c, h = 1 / 3, 2 / 3, 1 / 4, 1 / 2
+    eq26 = [[0.5, 0.25, 0.25, 0.0], [0.25, 0.75, 0.0, 0.0], [0.25, 0.0, 0.5, 0.25], [0.0, 0.0, 0.25, 0.75]]
+    third = [[a, a, a, 0.0], [a, b, 0.0, 0.0], [a, 0.0, a, a], [0.0, 0.0, a, b]]  # 1/(1 + 2) on every edge
+    same(built("half_max_degree"), eq26)  # the paper's Eq. (26)
+    same(built("max_degree_core"), third)
+    same(built("metropolis"), third)  # 1/(1 + max(d_i, d_j)) = 1/3: every edge touches a degree-2 node
+    same(built("matrix", f"task.consensus.matrix={eq26}".replace(" ", "")), eq26)
+    kite = "task.network.edges=[[0,1],[0,2],[0,3],[1,2]]"
+    same(built("half_max_degree", kite), [[h, 1 / 6, 1 / 6, 1 / 6], [1 / 6, b, 1 / 6, 0.0],
+                                          [1 / 6, 1 / 6, b, 0.0], [1 / 6, 0.0, 0.0, 5 / 6]])  # 1/(2 * 3)
+    same(built("max_degree_core", kite), [[c, c, c, c], [c, h, c, 0.0], [c, c, h, 0.0], [c, 0.0, 0.0, 3 / 4]])
+    same(built("metropolis", kite), [[c, c, c, c], [c, 5 / 12, a, 0.0], [c, a, 5 / 12, 0.0],
+                                     [c, 0.0, 0.0, 3 / 4]])  # w_12 = 1/(1 + 2)
     cfg = _compose("braga_tbn", "task.consensus.weights=max_degree")
     with pytest.raises(ConfigError, match="task.consensus.weights='max_degree' is ambiguous"):
         validate_config(cfg)

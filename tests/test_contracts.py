@@ -5,6 +5,7 @@ the role's contract (shapes, symmetry, positive definiteness, finite-difference 
 from __future__ import annotations
 
 import inspect
+import math
 
 import pytest
 import torch
@@ -36,25 +37,264 @@ def test_every_group_has_options():
     assert all(_options(g) for g in GROUPS), [g for g in GROUPS if not _options(g)]
 
 
-@pytest.mark.parametrize("group,option", ALL_OPTIONS, ids=[f"{g}={o}" for g, o in ALL_OPTIONS])
-def test_every_option_composes_and_names_an_importable_part(group, option):
-    """Composes with the default study or, for an option of another study's group (a Liu aggregation
-    rule, a data set), with at least one experiment that uses the group."""
-    from hydra.errors import ConfigCompositionException
+# ----------------------------------------------------------------- what every option sets and builds
+S = 10  # nodes of the default layout: 4 sensors + 6 communication-only
+CPU, F64 = torch.device("cpu"), torch.float64
+LIU = ["experiment=liu_table1"]  # the study whose groups (aggregation, tracker, gp_input, s1-s3) write into task
 
-    cfg, errors = None, []
-    for context in ([], *([f"experiment={e}"] for e in _options("experiment"))):
-        for sel in (f"{group}={option}", f"+{group}={option}"):  # a group outside the root defaults: '+'
-            try:
-                cfg = _compose(*context, sel)
-                break
-            except ConfigCompositionException as e:
-                errors.append(f"{context} {sel}: {str(e).splitlines()[0]}")
-        if cfg is not None:
-            break
-    assert cfg is not None, errors
+# The context an option is composed in: the default study unless the group belongs to another study.
+CONTEXT = {"aggregation": LIU, "tracker": LIU, "gp_input": LIU, "liu_keys": LIU}
+PLUS = {"dataset", "folds", "lstm"}  # groups outside the root defaults ('+group=option')
+
+
+def _uniform(adj):
+    """The paper's weights by hand: 1 / (|N_i| + 1) on N_i and i, 0 elsewhere."""
+    n = adj.shape[0]
+    w = torch.zeros(n, n, dtype=F64)
+    for i in range(n):
+        nbrs = [j for j in range(n) if j == i or bool(adj[i, j])]
+        for j in nbrs:
+            w[i, j] = 1.0 / len(nbrs)
+    return w
+
+
+def _plan(cfg):
+    from dslearn.schemas import validate_task
+    from dslearn.studies import liu_dgpt
+
+    validate_task(cfg)
+    return liu_dgpt.plan(cfg)
+
+
+def _check_aggregation(option, cfg, world):  # one rule of Liu et al., beside the centralised standard GP
+    assert list(cfg.task.aggregations) == [option]
+    p = _plan(cfg)
+    assert p["aggregations"] == [option] and p["centralised"] is True
+
+
+def _check_tracker(option, cfg, world):  # dgpt: the aggregation rules only; gp: the standard GP only
+    p = _plan(cfg)
+    assert cfg.task.tracker == option
+    if option == "dgpt":
+        assert p["aggregations"] == ["poe", "gpoe", "bcm", "rbcm", "grbcm"] and p["centralised"] is False
+    else:
+        assert p["aggregations"] == [] and p["centralised"] is True
+
+
+def _check_gp_input(option, cfg, world):
+    assert cfg.task.gp_input == option and _plan(cfg)["gp_input"] == option
+
+
+def _check_liu_keys(option, cfg, world):  # a top-level `noise`, null: the task's full list of noises
+    assert "noise" in cfg and cfg.noise is None and _plan(cfg)["noises"] == [1.0, 2.0, 4.0]
+
+
+def _check_data(option, cfg, world):  # Yu et al. V-D: 200 + 50 episodes; small: 30 + 20
+    from dslearn.learning.online import checkpoints
+
+    train, test = {"paper": (200, 50), "small": (30, 20)}[option]
+    assert (cfg.data.train_episodes, cfg.data.test_episodes, cfg.data.eval_at) == (train, test, None)
+    assert checkpoints(cfg.data) == [train]  # evaluated once, after all training episodes
+
+
+DATASETS = {  # label, files, frame rate (the physical step is 10 frames / fps), first validation frame per file
+    "eth": ("ETH", ("biwi_eth.txt",), 15.0, (10240,)),
+    "hotel": ("HOTEL", ("biwi_hotel.txt",), 25.0, (14400,)),
+    "univ": ("UNIV", ("students001.txt", "students003.txt"), 25.0, (3550, 4320)),
+    "zara1": ("ZARA1", ("crowds_zara01.txt",), 25.0, (7110,)),
+    "zara2": ("ZARA2", ("crowds_zara02.txt",), 25.0, (8420,)),
+    "zara3": ("ZARA3", ("crowds_zara03.txt",), 25.0, (6030,)),
+    "uni_examples": ("UNI-EX", ("uni_examples.txt",), 25.0, (5940,)),
+}
+
+
+def _check_dataset(option, cfg, world):
+    from dslearn.data.datasets import spec_from_config
+
+    label, files, fps, val = DATASETS[option]
+    spec = spec_from_config(option, cfg.dataset)
+    assert (spec.label, spec.files, spec.frame_step, spec.units, spec.root) == (label, files, 10, "m", None)
+    assert spec.step("benchmark") == 0.4 and spec.step("physical") == pytest.approx(10.0 / fps, rel=1e-15)
+    assert spec.split() == dict(zip(files, val))
+
+
+def _check_folds(option, cfg, world):  # the leave-one-scene-out benchmark, as the forecasting task composes it
+    assert list(cfg.folds.test) == ["eth", "hotel", "univ", "zara1", "zara2"]
+    assert list(cfg.folds.pool) == ["eth", "hotel", "zara1", "zara2", "univ", "zara3", "uni_examples"]
+    assert cfg.folds == _compose("experiment=ethucy_forecast").task.folds
+
+
+def _check_lstm(option, cfg, world):
+    """Yu et al. VI-C, as ``dslearn-train-lstm`` composes it; the tracking study's copy agrees key by key."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        node = compose("train_lstm").lstm
+    assert node == cfg.lstm
+    want = dict(embed=64, hidden=64, obs_len=2, pred_len=10, schedule="fixed", epochs=50, batch_size=8, lr=1e-3,
+                pooling="none")
+    assert {k: node[k] for k in want} == want
+    copy = _compose("task=ethucy_tracking").task.lstm
+    # the copy drops the filter's noise_std and adds the held-out share of early stopping; the rest is equal
+    assert set(node) - set(copy) == {"noise_std"} and set(copy) - set(node) == {"val_fraction"}
+    assert {k: node[k] for k in copy if k in node} == {k: copy[k] for k in copy if k in node}
+
+
+TASKS = {"braga_tbn": "BragaTask", "ethucy_forecast": "EthucyForecastTask", "ethucy_tracking": "EthucyTrackingTask",
+         "jiang_fg": "JiangTask", "liu_dgpt": "LiuDgpt", "yu": "YuTask", "yu_faults": "FaultTask"}
+
+
+def _check_task(option, cfg, world):  # the study's schema, its entry point dslearn.studies.<task>:run
+    import importlib
+
+    assert cfg.task.name == option and OmegaConf.get_type(cfg.task).__name__ == TASKS[option]
+    module, fn = cfg.task.entry.split(":")
+    assert module == f"dslearn.studies.{option}" and fn == "run"
+    assert callable(getattr(importlib.import_module(module), fn))
+    validate_config(cfg)
+
+
+def _check_filter(option, cfg, world):
+    from dslearn.compose import build_predict
+    from dslearn.filters.information import ExtendedPredict
+    from dslearn.filters.ukf import UnscentedPredict
+
+    f = cfg.filter  # ukf inherits the priors and the learning gate of the default
+    assert (f.prior_pos_std, f.prior_vel_std, f.learn_gate_std) == (1000.0, 1000.0, 2.0)
+    step = build_predict(cfg)
+    if option == "default":
+        assert type(step) is ExtendedPredict
+    else:
+        assert type(step) is UnscentedPredict and (step.alpha, step.beta, step.kappa) == (1.0, 2.0, 0.0)
+
+
+GP_MODELS = {  # variant, prior mean, process noise, aggregation rule (None: each node its own GP)
+    "gp": ("exact", "zero", "latent", None), "gp_increment": ("exact", "identity", "latent", None),
+    "gp_adaptive": ("exact", "identity", "adaptive", None), "gp_window": ("window", "identity", "latent", None),
+    "gp_sgpr": ("sgpr", "identity", "latent", None), "gp_ssgp": ("ssgp", "identity", "latent", None),
+    "gp_rbcm": ("exact", "zero", "latent", "rbcm"), "gp_increment_rbcm": ("exact", "identity", "latent", "rbcm"),
+}
+
+
+def _check_model(option, cfg, world):
+    from dslearn.models import ConstantVelocity, GPMotionModel, SocialForce
+    from dslearn.models.aggregated import AggregatedGPMotion
+
+    _, scenario, network = world
+    assert cfg.model.name == option  # gp_rbcm / gp_increment_rbcm: the label names the rule
+    m = build_motion_model(cfg.model, scenario, network, F64, CPU)
+    assert m.state_dim == 8  # 2 agents x (position, velocity)
+    if option == "lin":  # the paper's LIN: Q = 0.1^2 I
+        assert type(m) is ConstantVelocity and m.noise_std == 0.1
+        return
+    if option == "sfm":  # the true model with the simulation's parameters (scenario yu_two_agents)
+        assert type(m) is SocialForce and m.noise_std == 0.001
+        x = scenario.sample(1, network, torch.Generator().manual_seed(0)).states[:, 0].to(F64)
+        torch.testing.assert_close(m(x, scenario.ctx()), scenario.sfm(x, scenario.ctx()), rtol=0, atol=1e-15)
+        return
+    variant, mean, noise, rule = GP_MODELS[option]
+    if rule is not None:
+        assert type(m) is AggregatedGPMotion and m.method == rule and m.normalise_beta is False
+        m = m.base
+    assert type(m) is GPMotionModel and (m.variant, m.gp.mean_type, m.noise_mode) == (variant, mean, noise)
+    assert m.gp.num_nodes == S and m.gp.input_dim == m.gp.output_dim == 8
+    size = {"window": ("window", 500), "sgpr": ("M", 128), "ssgp": ("features", 200)}.get(variant)
+    if size is not None:
+        assert getattr(m.gp, size[0]) == size[1]
+    # sigma_f^2 = 1, l = 2, sigma_eps^2 = 0.5^2 (the exact GP holds them rounded to float32: ~5e-8 relative)
+    hyp = torch.stack([m.gp.outputscale.flatten(), m.gp.lengthscale.flatten(), m.gp.noise_var.flatten()])
+    torch.testing.assert_close(hyp, torch.tensor([[1.0], [2.0], [0.25]], dtype=F64).expand(3, S), rtol=1e-7, atol=0)
+
+
+def _check_observation(option, cfg, world):
+    """Both give h(y) = position, C = [I 0] before any learning; R = sigma_nu^2 I (linear) or the GP's prior
+    predictive variance (sigma_f^2 + sigma_nu^2) I = 1.04 I (gp); sigma_nu from network.meas_std = 0.2."""
+    from dslearn.models.observation import GPObservation, LinearPositionObservation
+
+    _, scenario, network = world
+    obs = build_observation(cfg.observation, network, F64, CPU)
+    assert type(obs) is {"linear": LinearPositionObservation, "gp": GPObservation}[option]
+    y = torch.randn(S, 2, 4, dtype=F64, generator=torch.Generator().manual_seed(2))
+    h, C, R = obs.linearize(y)
+    eye = torch.eye(2, dtype=F64)
+    torch.testing.assert_close(h, y[..., :2], rtol=0, atol=1e-15)
+    torch.testing.assert_close(C, torch.cat([eye, torch.zeros(2, 2, dtype=F64)], -1).expand(S, 2, 2, 4), rtol=0, atol=1e-15)
+    r = 0.2**2 + (1.0 if option == "gp" else 0.0)  # the GP's hyperparameters: float32-rounded, ~5e-8 relative
+    torch.testing.assert_close(R, r * eye.expand(S, 2, 2, 2), rtol=1e-7, atol=0)
+
+
+FUSION_CLASSES = {"individual": "Individual", "ce": "ConsensusOnEstimates", "cm": "ConsensusOnMeasurements",
+                  "ci": "ConsensusOnInformation", "hybrid": "HybridConsensus", "hybrid_nodes": "HybridConsensus",
+                  "centralized": "Centralized"}
+
+
+def _check_consensus(option, cfg, world):  # L = 4 rounds of the paper's weights; hybrid_nodes: omega = S
+    _, _, network = world
+    c = cfg.consensus
+    assert (c.name, c.iterations, c.weights) == (option.replace("_nodes", ""), 4, "uniform")
+    assert c.omega == ("nodes" if option == "hybrid_nodes" else "one")
+    f = build_fusion(c, network)
+    assert type(f).__name__ == FUSION_CLASSES[option] and f.iterations == 4
+    assert f.omega == (float(S) if option == "hybrid_nodes" else 1.0)
+    torch.testing.assert_close(f.weights, _uniform(network.adjacency), rtol=0, atol=1e-15)
+
+
+BLIND = [[4.0, 6.0], [2.5, 4.0], [5.5, 4.0], [4.0, 1.25], [1.0, 6.0], [7.0, 6.0], [1.5, 2.0], [6.5, 2.0],
+         [4.0, 3.0], [4.0, 7.5]]
+
+
+def _check_network(option, cfg, world):
+    """4 sensors (first) + 6 communication-only nodes in the 8 x 8 area, sensing range 4 m, sigma_nu = 0.2 m;
+    nodes closer than the radius are linked (yu: 4 m, placement seed 0; yu_blind: the listed layout, 3.2 m)."""
+    net = build(cfg.network, "network")
+    assert net.num_nodes == S and net.is_sensor.tolist() == [True] * 4 + [False] * 6
+    assert (net.sensing_range, net.meas_std) == (4.0, 0.2)
+    pos = net.positions
+    if option == "yu_blind":
+        torch.testing.assert_close(pos, torch.tensor(BLIND, dtype=pos.dtype), rtol=0, atol=0)
+    assert bool(((pos >= 0) & (pos <= 8)).all())
+    radius = {"yu": 4.0, "yu_blind": 3.2}[option]
+    want = [[i != j and math.dist(pos[i].tolist(), pos[j].tolist()) < radius for j in range(S)] for i in range(S)]
+    assert net.adjacency.tolist() == want
+
+
+def _check_scenario(option, cfg, world):
+    if option == "yu_two_agents":  # Yu et al. V-A: 2 agents, T = 3 s, dt = 0.25 s (12 steps), the 8 x 8 area
+        sc = build_scenario(cfg)
+        assert (sc.num_agents, sc.dt, sc.steps, tuple(sc.area), sc.process_std) == (2, 0.25, 12, (0.0, 8.0, 0.0, 8.0), 0.001)
+        return
+    # a Liu et al. scenario: restricts the study to its generator, run with task.scenario_params.<option>
+    cfg = _compose(*LIU, f"scenario={option}")
+    target = f"dslearn.sim.manoeuvres.generate_{option}"
+    assert cfg.scenario._target_ == cfg.task.scenario_params[option]._target_ == target
+    assert _plan(cfg)["scenarios"] == [option]
+
+
+CHECKS = {"aggregation": _check_aggregation, "tracker": _check_tracker, "gp_input": _check_gp_input,
+          "liu_keys": _check_liu_keys, "data": _check_data, "dataset": _check_dataset, "folds": _check_folds,
+          "lstm": _check_lstm, "task": _check_task, "filter": _check_filter, "model": _check_model,
+          "observation": _check_observation, "consensus": _check_consensus, "network": _check_network,
+          "scenario": _check_scenario}
+EXPECTED_OPTIONS = {"aggregation": {"bcm", "gpoe", "grbcm", "poe", "rbcm"},
+                    "tracker": {"dgpt", "gp"}, "gp_input": {"temporal", "spatiotemporal"}, "liu_keys": {"default"},
+                    "data": {"paper", "small"}, "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
+                    "task": set(TASKS), "filter": {"default", "ukf"}, "model": set(GP_MODELS) | {"lin", "sfm"},
+                    "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES),
+                    "network": {"yu", "yu_blind"}, "scenario": {"s1", "s2", "s3", "yu_two_agents"}}
+
+
+def test_every_option_has_its_expected_values():
+    """A new option (or group) needs its expectations here before its test can pass."""
+    assert {g: set(_options(g)) for g in GROUPS if g != "experiment"} == EXPECTED_OPTIONS
+
+
+@pytest.mark.parametrize("group,option", ALL_OPTIONS, ids=[f"{g}={o}" for g, o in ALL_OPTIONS])
+def test_every_option_composes_and_names_an_importable_part(group, option, yu_world):
+    """Composes in its study's context, sets what it names (the composed values; the built part's class and
+    parameters) and every ``_target_`` it names imports and takes its keys."""
+    sel = f"+{group}={option}" if group in PLUS else f"{group}={option}"
+    cfg = _compose(*CONTEXT.get(group, []), sel)
+    CHECKS[group](option, cfg, yu_world)
     node = OmegaConf.select(cfg, group)
-    if node is None:  # an option that writes into another package (e.g. '@package task')
+    if node is None:  # an option that writes into another package (e.g. '@package task'): checked above
         return
     spec = OmegaConf.to_container(node, resolve=False)
     targets = []
@@ -150,7 +390,7 @@ def test_fusion_contract(option, yu_world):
         wd = consensus_weights(network.adjacency, rule)
         torch.testing.assert_close(wd.sum(0), torch.ones_like(wd.sum(0)))
         torch.testing.assert_close(wd, wd.T)
-    assert (w >= 0).all()
+    torch.testing.assert_close(w, _uniform(network.adjacency), rtol=0, atol=1e-15)  # every option: weights=uniform
     s, dx = network.num_nodes, 4
     o = torch.eye(dx, dtype=torch.float64).expand(s, 1, dx, dx).clone()
     q = torch.ones(s, 1, dx, dtype=torch.float64)

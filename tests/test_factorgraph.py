@@ -257,22 +257,32 @@ def _scenario(runs, K, L, seed=0):
 
 def test_ekf_fg_no_blow_up_at_any_iteration_count():
     """The paper's sigma_e^2 = CRLB makes EKF-FG diverge when the FG has not converged (t = 1..5
-    iterations from (0, 0)); with the FG's convergence term, or with the gate, every run stays finite
-    and < 1e3 at every iteration count (3 full-length runs of the paper's scenario)."""
+    iterations from (0, 0)); with the FG's convergence term, or with the gate, no run blows up at any
+    iteration count (3 full-length runs of the paper's scenario). Blowing up is measured against two
+    references that need no tuning: (i) Eq. 18 is a product of two Gaussians, so every refined
+    parameter lies between the prediction and the FG output (a gain in [0, 1]) -- for any sigma_e^2,
+    the paper's included; (ii) the tracker that never moves from its start (x_0 = (2, -2) for every
+    timing) has per-run RMSE ~45 (the source drifts ~140 units): a tracker that uses its data beats it."""
     h, truth, noise = _scenario(range(3), 50, 60)
     its = torch.arange(1, 11)
     sig = torch.full((10,), 5.0, dtype=DT)
+    x0 = torch.tensor(TrackerSettings().initial_state, dtype=DT)
+    static = (truth - x0).square().mean(-1).mean(-1).sqrt()  # (B,) RMSE of the estimate x_0 held
 
-    def episode_rmse(settings):
+    def run(settings):
         o = simulate(h, truth, noise, sig, its, settings)
-        return (o.estimates["ekf_fg"] - truth).square().mean(-1).mean(-1).sqrt()   # (C, B)
+        est, pred, fg = (o.estimates[k] for k in ("ekf_fg", "prediction", "fg_identification"))
+        lo, hi = torch.minimum(pred, fg), torch.maximum(pred, fg)
+        slack = 1e-12 * (hi.abs() + 1.0)  # rounding of P_post (x_pred / P_pred + m / sigma_e^2)
+        assert bool(((est >= lo - slack) & (est <= hi + slack)).all()), settings
+        return (est - truth).square().mean(-1).mean(-1).sqrt()   # (C, B)
 
-    paper = episode_rmse(TrackerSettings(obs_var="crlb"))
-    assert float(paper.max()) > 1e3        # the failure exists in this data (the test has teeth)
+    paper = run(TrackerSettings(obs_var="crlb"))
+    assert bool((paper > static).any())  # the failure exists in this data (the test has teeth)
     for kw in (dict(obs_var="convergence"), dict(obs_var="crlb", gate=10.83),
                dict(obs_var="convergence", gate=10.83)):
-        rm = episode_rmse(TrackerSettings(**kw))
-        assert bool(torch.isfinite(rm).all()) and float(rm.max()) < 1e3, (kw, rm.max())
+        rm = run(TrackerSettings(**kw))
+        assert bool((rm < static).all()), (kw, rm.max(), static)
         if kw["obs_var"] == "convergence":
             # and it still tracks: from 6 iterations on each run within a few units (measured <= 2.9;
             # the paper's tracker: up to 10.2; the source moves ~140 units)
@@ -445,7 +455,15 @@ def test_study_run_and_report(tmp_path):
     assert {"crlb", "centralized_gn", "centralized_ekf", "ekf_fg", "fg_identification"} <= set(df["model"])
     assert {"default", "paper", "relinearize_sequential", "gauss_newton_fg"} <= set(df["variant"])
     rm = df[(df["metric"] == "rmse") & (df["variant"] == "default")]
-    assert np.isfinite(rm["value"]).all() and (rm["value"] >= 0).all()
+    assert np.isfinite(rm["value"]).all()
+    # Fig. 5 rows: the bound scales with sigma_y (Fisher information ~ 1/sigma_y^2 at the same truth), and
+    # the centralised ML attains it: pooled RMSE / sqrt(CRLB) within the sampling spread of an RMSE of
+    # 3 runs x 6 timings x 2 parameters = 36 errors (~12 % relative; the band is ~3 spreads wide)
+    f5 = rm[rm["figure"] == "fig5"].pivot_table(index=["sigma_y", "episode"], columns="model", values="value")
+    np.testing.assert_allclose(f5.loc[1.0, "crlb"], f5.loc[5.0, "crlb"] / 5.0, rtol=1e-12)
+    for sy in (1.0, 5.0):
+        eff = math.sqrt((f5.loc[sy, "centralized_gn"] ** 2).mean() / (f5.loc[sy, "crlb"] ** 2).mean())
+        assert 0.6 < eff < 1.4, (sy, eff)
     # no tracker row of any figure, variant, iteration count or sigma_y blows up
     ekf = df[(df["metric"] == "rmse") & (df["model"] == "ekf_fg")]
     assert len(ekf) and np.isfinite(ekf["value"]).all() and float(ekf["value"].max()) < 1e3

@@ -166,14 +166,45 @@ def test_bad_factor_values_are_refused_before_any_work():
         OnlineGP(2, 4, 4, factor="qr")
 
 
+def _exact_posterior(X, Y, valid, xq, sf2, ls, s2):
+    """The textbook exact GP of one node, from scratch: identity prior mean, RBF kernel
+    ``k(a, b) = sf2 exp(-|a - b|^2 / 2 ls^2)`` on the valid points only; mean
+    ``x + k^T (K + s2 I)^{-1} (Y - X)`` and latent variance ``sf2 - k^T (K + s2 I)^{-1} k`` at ``xq (N, d)``."""
+    X, Y = X[valid], Y[valid]
+
+    def k(a, b):
+        return sf2 * torch.exp(-torch.cdist(a, b).square() / (2 * ls**2))
+
+    G = k(X, X) + s2 * torch.eye(len(X), dtype=D)
+    ks = k(X, xq)
+    return xq + ks.T @ torch.linalg.solve(G, Y - X), sf2 - (ks * torch.linalg.solve(G, ks)).sum(0)
+
+
 def test_a_copied_gp_keeps_streaming():
-    gp, g = _stream("inverse", n=40)
+    """A deep copy is an independent GP: the original and the copy, fed different points after the
+    copy, each predict what the exact GP of its own data set predicts (computed from scratch with
+    the hyperparameters the original held before the copy)."""
+    n, s, d = 40, 3, 4
+    gp, g = _stream("inverse", n=n)
+    hyp = [(float(gp.outputscale[i]), float(gp.lengthscale.flatten()[i]), float(gp.noise_var.flatten()[i]))
+           for i in range(s)]  # 1.1^2, 1.4, 0.3^2 as stored
     twin = copy.deepcopy(gp)
-    x = torch.randn(3, 4, generator=g, dtype=D)
-    for m in (gp, twin):
+    X = 1.5 * torch.randn(n, s, d, generator=torch.Generator().manual_seed(0), dtype=D)  # _stream's inputs
+    valid = torch.stack([torch.tensor([True, i % 3 != 0, True]) for i in range(n)])  # (n, S)
+    xa, xb = torch.randn(2, s, d, generator=g, dtype=D)
+    for m, x in ((gp, xa), (twin, xb)):
         m.predict(x.unsqueeze(1))
-        m.append(x, x)
-    assert torch.equal(gp.alpha, twin.alpha)
+        m.append(x, x + 0.3 * torch.sin(x))
+    xq = torch.randn(s, 5, d, generator=g, dtype=D)
+    for m, x in ((gp, xa), (twin, xb)):
+        assert m.n == n + 1
+        mean, var, _ = m.predict(xq)
+        for i in range(s):
+            Xi = torch.cat([X[:, i], x[i : i + 1]])
+            vi = torch.cat([valid[:, i], torch.tensor([True])])
+            ref_mean, ref_var = _exact_posterior(Xi, Xi + 0.3 * torch.sin(Xi), vi, xq[i], *hyp[i])
+            torch.testing.assert_close(mean[i], ref_mean, rtol=0, atol=1e-11)
+            torch.testing.assert_close(var[i], ref_var, rtol=0, atol=1e-11)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

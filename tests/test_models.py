@@ -142,8 +142,13 @@ def test_gp_jacobian_finite_differences_and_autograd(mean):
     fd = torch.stack([(model(x + eps * e, CTX) - model(x - eps * e, CTX)) / (2 * eps) for e in torch.eye(4, dtype=D)], -1)
     assert torch.allclose(jac, fd, atol=1e-7)
     assert torch.allclose(jac, model._autograd_jacobian(x), atol=1e-10)
-    # Q is symmetric positive semi-definite and isotropic
-    assert torch.allclose(q, q.transpose(-1, -2)) and (torch.linalg.eigvalsh(q) >= 0).all()
+    # Q = Sigma_f(x) I (noise=latent): the exact GP's latent variance at each query, from scratch with the
+    # stored hyperparameters (1, 1.5, 0.5^2), below the prior variance sf^2 = 1
+    for s in range(2):
+        sf2, ls, s2 = (float(t.flatten()[s]) for t in (model.gp.outputscale, model.gp.lengthscale, model.gp.noise_var))
+        _, var = _plain_gp(X[:, s], torch.tanh(X[:, s]), x[s], sf2, ls, s2)
+        assert 0 < float(var.min()) and float(var.max()) < sf2
+        torch.testing.assert_close(q[s], var[:, None, None] * torch.eye(4, dtype=D), rtol=0, atol=1e-10)
 
 
 def test_gp_save_load_roundtrip(tmp_path):

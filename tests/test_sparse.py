@@ -128,7 +128,29 @@ def test_sparse_jacobian_closed_form_equals_autograd(variant, opts):
     eps = 1e-6
     fd = torch.stack([(model(x + eps * e, CTX) - model(x - eps * e, CTX)) / (2 * eps) for e in torch.eye(4, dtype=D)], -1)
     assert torch.allclose(jac, fd, atol=1e-7)
-    assert (q.diagonal(dim1=-2, dim2=-1) >= 0).all() and torch.allclose(mean, model(x, CTX))
+    assert torch.allclose(mean, model(x, CTX))
+    # Q = Sigma_f(x) I (noise=latent), Sigma_f the variant's closed form at each query (targets play no
+    # part), with the hyperparameters as the variant stores them (1.3^2, 1.7, 0.4^2)
+    for s in range(2):
+        Xs, xq = X[:, s], x[s]
+        sf2, ls, s2 = (float(t.flatten()[s]) for t in (model.gp.outputscale, model.gp.lengthscale, model.gp.noise_var))
+        k = lambda a, b: _k(a, b, sf2, ls)  # noqa: E731
+        if variant == "window":  # the exact GP of the last 12 points
+            ks = k(Xs[-12:], xq)
+            var = sf2 - (ks * torch.linalg.solve(k(Xs[-12:], Xs[-12:]) + s2 * torch.eye(12, dtype=D), ks)).sum(0)
+            tol = 1e-9
+        elif variant == "sgpr":  # DTC with Z = the first 10 points, K_uu + 1e-8 sf^2 I (the default jitter)
+            Kj = k(Xs[:10], Xs[:10]) + 1e-8 * sf2 * torch.eye(10, dtype=D)
+            Kuf, ku = k(Xs[:10], Xs), k(Xs[:10], xq)
+            Sig = Kj + Kuf @ Kuf.T / s2
+            var = sf2 - (ku * torch.linalg.solve(Kj, ku)).sum(0) + (ku * torch.linalg.solve(Sig, ku)).sum(0)
+            tol = 1e-7
+        else:  # Bayesian linear regression on the 40 random Fourier features
+            F, Fq = model.gp.phi(Xs.expand(2, -1, -1))[s], model.gp.phi(xq.expand(2, -1, -1))[s]
+            A = torch.eye(40, dtype=D) + F.T @ F / s2
+            var, tol = (Fq * torch.linalg.solve(A, Fq.T).T).sum(-1), 1e-10
+        assert 0 < float(var.min()) and float(var.max()) < sf2  # a posterior variance below the prior's
+        torch.testing.assert_close(q[s], var[:, None, None] * torch.eye(4, dtype=D), rtol=0, atol=tol)
 
 
 def test_variant_config_errors():

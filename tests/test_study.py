@@ -2,7 +2,9 @@
 
 import itertools
 import json
+import math
 
+import numpy as np
 import pandas as pd
 import torch
 import pytest
@@ -15,23 +17,78 @@ from dslearn.studies.yu import YuStudy
 TINY = ("data.train_episodes=2", "data.test_episodes=2")
 
 
+SIGMA_NU = 0.2  # network.meas_std: the measurement noise std per coordinate [m]
+# NEES / Dx of a consistent filter: the per-step NEES is chi-square with Dx = 8 degrees of freedom (2 agents x
+# 4); an episode's value averages 12 time-correlated steps, so it spreads at most as one step does: 99 % band
+# of chi2(8) / 8 (0.5 % and 99.5 % points 1.344 and 21.955)
+NEES_BAND = (1.344 / 8, 21.955 / 8)
+_RUNS: dict = {}
+
+
+def _tiny_run(make_cfg, model, consensus):
+    """The TINY run of a (model, fusion) pair, once per session (the individual run is also the
+    reference of the consensus runs)."""
+    if (model, consensus) not in _RUNS:
+        cfg = make_cfg(f"model={model}", f"consensus={consensus}", *TINY)
+        _RUNS[model, consensus] = YuStudy.from_config(cfg).run()
+    return _RUNS[model, consensus]
+
+
 @pytest.mark.parametrize(
     "model,consensus",
     list(itertools.product(["lin", "sfm", "gp", "gp_increment"], ["individual", "ce", "cm", "ci", "hybrid", "centralized"])),
 )
 def test_every_model_and_fusion_runs(make_cfg, model, consensus):
-    cfg = make_cfg(f"model={model}", f"consensus={consensus}", *TINY)
-    df = YuStudy.from_config(cfg).run()
+    """Each pair runs and its numbers hold what the fusion and the model promise (2 training, 2 test
+    episodes of the default scenario: 4 sensors with sigma_nu = 0.2 m, 6 communication-only nodes)."""
+    df = _tiny_run(make_cfg, model, consensus)
     assert set(df["metric"]) == {"track_err", "track_rmse", "nees", "pred_err"}
-    assert df["value"].notna().all()
+    assert np.isfinite(df["value"]).all()
     assert len(df) == 4 * 10 * 2  # metrics x nodes x test episodes
     assert (df["model"] == model).all() and (df["consensus"] == consensus).all()
+    per = df.pivot_table(index=["node_kind", "node", "episode"], columns="metric", values="value")
+    assert (per["track_rmse"] >= per["track_err"]).all()  # RMS >= mean of the same position errors
+    if consensus == "centralized":  # every node holds the centralised filter (and learns the same data)
+        spread = per.groupby("episode").agg(lambda v: v.max() - v.min())
+        assert (spread.to_numpy() <= 1e-12 * per.abs().max().max()).all(), spread
+    if consensus != "individual":  # what consensus brings to the nodes that never measure
+        ind = _tiny_run(make_cfg, model, "individual")
+        comm, comm_ind = (d[(d["node_kind"] == "comm") & (d["metric"] == "track_err")]["value"].mean() for d in (df, ind))
+        assert comm < comm_ind, (comm, comm_ind)
+    if consensus in ("cm", "ci", "hybrid", "centralized") and model != "gp":
+        # every node fuses every sensor's information with a model that predicts the walk (the zero-mean GP
+        # after 2 episodes falls back to the origin, metres off: pred_err): each node beats the error of
+        # one raw measurement, E|nu| = sigma_nu sqrt(pi / 2) for nu ~ N(0, sigma_nu^2 I_2)
+        bound = SIGMA_NU * math.sqrt(math.pi / 2)
+        assert (per["track_err"] < bound).all(), per["track_err"].max()
+    if model == "lin" and consensus != "ce":  # the linear model is consistent; CE keeps local information
+        # while averaging estimates (over-confident by design). Consensus with row-stochastic weights counts
+        # at most the information of the centralised filter: below the band's top; centralised: inside it
+        assert (per["nees"] < NEES_BAND[1]).all(), per["nees"].max()
+        if consensus == "centralized":
+            assert (per["nees"] > NEES_BAND[0]).all(), per["nees"].min()
 
 
 def test_learned_observation_model_runs(make_cfg):
-    cfg = make_cfg("model=gp_increment", "observation=gp", *TINY)
-    df = YuStudy.from_config(cfg).run()
-    assert df["value"].notna().all()
+    """observation=gp before learning is its prior, h(y) = position (identity mean), C = [I 0] and
+    R = (sigma_f^2 + sigma_eps^2) I: the run at 0 training episodes equals the linear observation model
+    with noise_std = sqrt(1 + 0.2^2), metric by metric. Learning then feeds the sensors' GPs only."""
+    cfg = make_cfg("model=gp_increment", "observation=gp", *TINY, "data.eval_at=[0,2]")
+    study = YuStudy.from_config(cfg)
+    df = study.run()
+    assert np.isfinite(df["value"]).all()
+    lin = YuStudy.from_config(make_cfg("model=gp_increment", "observation=linear",
+                                       f"observation.noise_std={math.sqrt(1.0 + 0.2**2)}",
+                                       "data.train_episodes=0", "data.test_episodes=2")).run()
+    key = ["metric", "node", "episode"]
+    prior = df[df["train_seen"] == 0].sort_values(key)["value"].to_numpy()
+    np.testing.assert_allclose(prior, lin.sort_values(key)["value"].to_numpy(), rtol=1e-9, atol=0)
+    learned = df[df["train_seen"] == 2].sort_values(key)["value"].to_numpy()
+    assert np.abs(learned - prior).max() > 1e-3  # the learned models changed the result
+    gp = study.parts.observation.gp
+    net = study.parts.network
+    seen = gp.mask[:, : gp.n].sum(1)  # valid (estimate, measurement) pairs per node
+    assert (seen[net.is_sensor] > 0).all() and (seen[~net.is_sensor] == 0).all()
 
 
 def test_consensus_beats_individual_and_sfm_predicts_best(make_cfg):

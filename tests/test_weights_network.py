@@ -10,12 +10,26 @@ def ring(n):
     return adjacency_from_edges(n, [[i, (i + 1) % n] for i in range(n)] + [[0, 2]])
 
 
+# ring(7) by hand: edges 0-1, 1-2, ..., 6-0 and the chord 0-2; degrees 3, 2, 3, 2, 2, 2, 2 (d_max = 3)
+_q, _t = 1 / 4, 1 / 3
+RING7 = {
+    # Metropolis 1 / (1 + max(d_i, d_j)): 1/4 on an edge touching node 0 or 2, else 1/3; the rest on the diagonal
+    metropolis: [[_q, _q, _q, 0, 0, 0, _q], [_q, 1 / 2, _q, 0, 0, 0, 0], [_q, _q, _q, _q, 0, 0, 0],
+                 [0, 0, _q, 5 / 12, _t, 0, 0], [0, 0, 0, _t, _t, _t, 0], [0, 0, 0, 0, _t, _t, _t],
+                 [_q, 0, 0, 0, 0, _t, 5 / 12]],
+    # maximum degree 1 / (1 + 3) on every edge, 1 - d_i / 4 on the diagonal
+    max_degree: [[_q, _q, _q, 0, 0, 0, _q], [_q, 1 / 2, _q, 0, 0, 0, 0], [_q, _q, _q, _q, 0, 0, 0],
+                 [0, 0, _q, 1 / 2, _q, 0, 0], [0, 0, 0, _q, 1 / 2, _q, 0], [0, 0, 0, 0, _q, 1 / 2, _q],
+                 [_q, 0, 0, 0, 0, _q, 1 / 2]],
+}
+
+
 @pytest.mark.parametrize("fn", [metropolis, max_degree])
 def test_doubly_stochastic(fn):
     w = fn(ring(7))
+    torch.testing.assert_close(w, torch.tensor(RING7[fn], dtype=w.dtype), rtol=0, atol=1e-15)
     assert torch.allclose(w.sum(0), torch.ones(7, dtype=w.dtype), atol=1e-12)
     assert torch.allclose(w.sum(1), torch.ones(7, dtype=w.dtype), atol=1e-12)
-    assert (w >= 0).all()
     assert torch.allclose(w, w.T)
 
 

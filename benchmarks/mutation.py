@@ -1,0 +1,143 @@
+"""Mutation testing of the filtering and fusion code: would the tests notice a small bug?
+
+    python benchmarks/mutation.py run [--max-children 2]   # mutate and test (resumable: Ctrl-C, run again)
+    python benchmarks/mutation.py report                   # kill ratio, survivors -> benchmarks/mutation/
+
+``run`` calls mutmut (``pip install mutmut``; its settings are ``[tool.mutmut]`` in ``pyproject.toml``:
+the modules under ``dslearn/fusion/``, ``dslearn/filters/`` and ``dslearn/metrics.py``, the whole test
+suite, each mutant against the tests that cover the mutated function). mutmut keeps every verdict in
+``mutants/`` (not tracked), so a second ``run`` tests only what is left or what changed; this is a
+benchmark, not part of CI (a full run takes about an hour on two cores).
+
+``report`` reads those verdicts and writes ``benchmarks/mutation/summary.md`` and ``survivors.csv``:
+the kill ratio per module and overall (killed, timed out or crashed, over every mutant tested), and
+every survivor with its change. A survivor that cannot be killed because it changes nothing
+observable (an equivalent mutant) is explained in ``benchmarks/mutation/explained.toml``, matched by
+module, function and the changed line; the report marks each survivor explained or not and exits 1
+while any is unexplained.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import re
+import shutil
+import subprocess
+import sys
+import tomllib
+from collections import Counter, defaultdict
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "benchmarks" / "mutation"
+EXPLAINED = OUT / "explained.toml"
+
+#: mutmut's exit codes -> verdict (mutmut.stats.status_by_exit_code, grouped)
+KILLED = {1: "killed", 3: "killed", 36: "timeout", 24: "timeout", -24: "timeout", 152: "timeout", 255: "timeout",
+          -11: "crashed", -9: "crashed", 37: "killed"}
+SURVIVED = {0: "survived", 5: "no tests", 33: "no tests", 35: "suspicious"}
+NOT_TESTED = {None: "not checked", 34: "skipped", 2: "interrupted"}
+
+
+def _mutmut() -> str:
+    exe = shutil.which("mutmut")
+    if exe is None:
+        raise SystemExit("mutation: mutmut is not installed (pip install mutmut)")
+    return exe
+
+
+def run(max_children: int) -> int:
+    """Run (or resume) mutmut from the repository root."""
+    return subprocess.call([_mutmut(), "run", "--max-children", str(max_children)], cwd=ROOT)
+
+
+def _verdicts() -> dict[str, tuple[str, int | None]]:
+    """``{mutant name: (module path, exit code)}`` from mutmut's ``.meta`` files."""
+    out = {}
+    for meta in sorted((ROOT / "mutants").rglob("*.py.meta")):
+        module = str(meta.relative_to(ROOT / "mutants"))[: -len(".meta")]
+        for name, code in json.loads(meta.read_text())["exit_code_by_key"].items():
+            out[name] = (module, code)
+    if not out:
+        raise SystemExit("mutation: no verdicts under mutants/; run `python benchmarks/mutation.py run` first")
+    return out
+
+
+def _diff(name: str) -> tuple[str, str, str]:
+    """The mutated function and the changed line (before, after) of one mutant (``mutmut show``)."""
+    text = subprocess.run([_mutmut(), "show", name], cwd=ROOT, capture_output=True, text=True).stdout
+    minus = [ln[1:].strip() for ln in text.splitlines() if ln.startswith("-") and not ln.startswith("---")]
+    plus = [ln[1:].strip() for ln in text.splitlines() if ln.startswith("+") and not ln.startswith("+++")]
+    func = re.sub(r"__mutmut_\d+$", "", name.rsplit(".", 1)[-1]).removeprefix("x_").replace("xǁ", "").replace("ǁ", ".")
+    return func, " / ".join(minus), " / ".join(plus)
+
+
+def _explained() -> list[dict]:
+    if not EXPLAINED.is_file():
+        return []
+    return tomllib.loads(EXPLAINED.read_text())["mutant"]
+
+
+def report() -> int:
+    verdicts = _verdicts()
+    explained = _explained()
+    per_module: dict[str, Counter] = defaultdict(Counter)
+    survivors = []
+    for name, (module, code) in verdicts.items():
+        if code in KILLED:
+            per_module[module]["killed"] += 1
+        elif code in NOT_TESTED:
+            per_module[module]["not tested"] += 1
+        else:
+            per_module[module]["survived"] += 1
+            func, before, after = _diff(name)
+            why = next((e["why"] for e in explained if e["module"] == module and e["function"] == func
+                        and e["before"] == before and e["after"] == after), "")
+            survivors.append(dict(module=module, function=func, mutant=name, verdict=SURVIVED.get(code, "suspicious"),
+                                  before=before, after=after, explained=why))
+    OUT.mkdir(parents=True, exist_ok=True)
+    with open(OUT / "survivors.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["module", "function", "mutant", "verdict", "before", "after", "explained"])
+        w.writeheader()
+        w.writerows(survivors)
+    total = Counter()
+    lines = ["# Mutation score", "",
+             "Command: `python benchmarks/mutation.py run && python benchmarks/mutation.py report` (mutmut; "
+             "settings in `pyproject.toml`, `[tool.mutmut]`). Kill ratio = killed (a test failed, timed out or "
+             "crashed) / mutants tested. Survivors: `survivors.csv`; each one that changes nothing observable is "
+             "explained in `explained.toml`.", "",
+             "| module | mutants | killed | survived | explained | kill ratio |", "|---|---|---|---|---|---|"]
+    n_expl = Counter(s["module"] for s in survivors if s["explained"])
+    for module in sorted(per_module):
+        c = per_module[module]
+        total.update(c)
+        tested = c["killed"] + c["survived"]
+        lines.append(f"| `{module}` | {tested} | {c['killed']} | {c['survived']} | {n_expl[module]} | "
+                     f"{c['killed'] / max(tested, 1):.1%} |")
+    tested = total["killed"] + total["survived"]
+    lines.append(f"| **all** | {tested} | {total['killed']} | {total['survived']} | {sum(n_expl.values())} | "
+                 f"**{total['killed'] / max(tested, 1):.1%}** |")
+    if total["not tested"]:
+        lines += ["", f"{total['not tested']} mutants not tested yet (run again to resume)."]
+    unexplained = [s for s in survivors if not s["explained"]]
+    lines += ["", f"Unexplained survivors: {len(unexplained)}."]
+    for s in unexplained:
+        lines.append(f"- `{s['module']}` `{s['function']}`: `{s['before']}` -> `{s['after']}` ({s['verdict']})")
+    (OUT / "summary.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines[4:4 + len(per_module) + 3]))
+    print(f"wrote {OUT.relative_to(ROOT)}/summary.md and survivors.csv; unexplained survivors: {len(unexplained)}")
+    return 1 if unexplained or total["not tested"] else 0
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("command", choices=["run", "report"])
+    p.add_argument("--max-children", type=int, default=2, help="run: mutants tested in parallel (default 2)")
+    a = p.parse_args(argv)
+    sys.exit(run(a.max_children) if a.command == "run" else report())
+
+
+if __name__ == "__main__":
+    main()
