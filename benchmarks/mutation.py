@@ -3,11 +3,12 @@
     python benchmarks/mutation.py run [--max-children 2]   # mutate and test (resumable: Ctrl-C, run again)
     python benchmarks/mutation.py report                   # kill ratio, survivors -> benchmarks/mutation/
 
-``run`` calls mutmut (``pip install mutmut``; its settings are ``[tool.mutmut]`` in ``pyproject.toml``:
-the modules under ``dslearn/fusion/``, ``dslearn/filters/`` and ``dslearn/metrics.py``, the whole test
-suite, each mutant against the tests that cover the mutated function). mutmut keeps every verdict in
-``mutants/`` (not tracked), so a second ``run`` tests only what is left or what changed; this is a
-benchmark, not part of CI (a full run takes about an hour on two cores).
+``run`` tests the last commit: it exports ``HEAD`` into ``.mutation/`` (not tracked; the working tree's
+uncommitted edits are not seen) and calls mutmut there (``pip install mutmut``; its settings are
+``[tool.mutmut]`` in ``pyproject.toml``: the modules under ``dslearn/fusion/``, ``dslearn/filters/`` and
+``dslearn/metrics.py``, the whole test suite, each mutant against the tests that cover the mutated
+function). mutmut keeps every verdict in ``.mutation/mutants/``, so a second ``run`` tests only what is
+left or what changed since; this is a benchmark, not part of CI (a full run takes hours on two cores).
 
 ``report`` reads those verdicts and writes ``benchmarks/mutation/summary.md`` and ``survivors.csv``:
 the kill ratio per module and overall (killed, timed out or crashed, over every mutant tested), and
@@ -31,6 +32,7 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+WORK = ROOT / ".mutation"  # the exported commit and mutmut's mutants/ (not tracked)
 OUT = ROOT / "benchmarks" / "mutation"
 EXPLAINED = OUT / "explained.toml"
 
@@ -48,26 +50,39 @@ def _mutmut() -> str:
     return exe
 
 
+def export_head() -> None:
+    """``HEAD``'s tracked files into :data:`WORK` (over the previous export; mutmut's verdicts stay),
+    with ``dslearn/conf`` pointing at the exported ``conf/`` (the packaged configs, as an install has)."""
+    WORK.mkdir(exist_ok=True)
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", "HEAD"], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(WORK)], input=archive, check=True)
+    link = WORK / "dslearn" / "conf"
+    if not link.exists():
+        link.symlink_to(Path("..") / "conf")
+
+
 def run(max_children: int) -> int:
-    """Run (or resume) mutmut from the repository root."""
-    return subprocess.call([_mutmut(), "run", "--max-children", str(max_children)], cwd=ROOT)
+    """Export ``HEAD`` and run (or resume) mutmut there."""
+    exe = _mutmut()
+    export_head()
+    return subprocess.call([exe, "run", "--max-children", str(max_children)], cwd=WORK)
 
 
 def _verdicts() -> dict[str, tuple[str, int | None]]:
     """``{mutant name: (module path, exit code)}`` from mutmut's ``.meta`` files."""
     out = {}
-    for meta in sorted((ROOT / "mutants").rglob("*.py.meta")):
-        module = str(meta.relative_to(ROOT / "mutants"))[: -len(".meta")]
+    for meta in sorted((WORK / "mutants").rglob("*.py.meta")):
+        module = str(meta.relative_to(WORK / "mutants"))[: -len(".meta")]
         for name, code in json.loads(meta.read_text())["exit_code_by_key"].items():
             out[name] = (module, code)
     if not out:
-        raise SystemExit("mutation: no verdicts under mutants/; run `python benchmarks/mutation.py run` first")
+        raise SystemExit("mutation: no verdicts under .mutation/mutants/; run `python benchmarks/mutation.py run` first")
     return out
 
 
 def _diff(name: str) -> tuple[str, str, str]:
     """The mutated function and the changed line (before, after) of one mutant (``mutmut show``)."""
-    text = subprocess.run([_mutmut(), "show", name], cwd=ROOT, capture_output=True, text=True).stdout
+    text = subprocess.run([_mutmut(), "show", name], cwd=WORK, capture_output=True, text=True).stdout
     minus = [ln[1:].strip() for ln in text.splitlines() if ln.startswith("-") and not ln.startswith("---")]
     plus = [ln[1:].strip() for ln in text.splitlines() if ln.startswith("+") and not ln.startswith("+++")]
     func = re.sub(r"__mutmut_\d+$", "", name.rsplit(".", 1)[-1]).removeprefix("x_").replace("xǁ", "").replace("ǁ", ".")
