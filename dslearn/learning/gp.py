@@ -106,6 +106,11 @@ class OnlineGP(PriorMean, nn.Module):
             was measured with the solves).
     """
 
+    #: :class:`~dslearn.models.gp_backend.GPBackend` capabilities: :meth:`predict_belief` is closed
+    #: form; one point per node per append, so :meth:`reserve` can allocate the buffers at once
+    supports_belief = True
+    grows_per_append = True
+
     def __init__(
         self,
         num_nodes: int,
@@ -436,6 +441,35 @@ class OnlineGP(PriorMean, nn.Module):
         n = self.n
         return self.X[:, :n], self.R[:, :n], self.mask[:, :n]
 
+    def state_tensors(self) -> dict[str, Tensor]:
+        """The data sets as a model file keeps them: ``X (S, n, Din)``, residual targets ``R (S, n, Dy)``,
+        ``mask (S, n)`` (copies)."""
+        X, R, mask = self.data()
+        return {"X": X.clone(), "R": R.clone(), "mask": mask.clone()}
+
+    def _max_points(self) -> int | None:
+        """The most points per node a loaded data set may hold (None: any)."""
+        return None
+
+    def load_state_tensors(self, state: dict[str, Tensor], source: str = "model file") -> None:
+        """Replace the data sets by what :meth:`state_tensors` gave, after checking their shapes
+        against this GP (``ConfigError`` naming ``source``, nothing changed); factorised once with the
+        current hyperparameters. The buffers grow in chunks of 128 rows past the current capacity."""
+        X, R, mask = state["X"], state["R"], state["mask"]
+        s, d, o = self.num_nodes, self.input_dim, self.output_dim
+        n = X.shape[1] if X.dim() == 3 else -1
+        if (X.dim(), R.dim(), mask.dim()) != (3, 3, 2) or X.shape != (s, n, d) or R.shape != (s, n, o) \
+                or mask.shape != (s, n) or mask.dtype != torch.bool:
+            raise ConfigError(
+                f"{source}: GP data of shape X {tuple(X.shape)}, R {tuple(R.shape)}, mask {tuple(mask.shape)} does not "
+                f"match the configured model ({s} nodes, input dim {d}, output dim {o})"
+            )
+        most = self._max_points()
+        if most is not None and n > most:
+            raise ConfigError(f"{source}: holds {n} points per node, more than model.window={most}")
+        cap = self.X.shape[1]
+        self.set_data(X, R, mask, residual=True, capacity=cap + 128 * max(0, -(-(n - cap) // 128)))
+
     def solve(self, rhs: Tensor) -> Tensor:
         r""":math:`(K + \sigma^2 I)^{-1} \mathrm{rhs}` for ``rhs (S, n, k)`` through the current factor."""
         if self.inverse:
@@ -517,6 +551,31 @@ class OnlineGP(PriorMean, nn.Module):
             self._pending = pair
             self._last = (x, w[..., 0], n, x._version, b[..., 0] if pair else None)
         return mean, var, jac
+
+    @torch.no_grad()
+    def variance_gradient(self, x: Tensor) -> Tensor:
+        r""":math:`\partial\sigma^2(x)/\partial x` of the latent variance at ``x (S, N, Din)`` -> ``(S, N, Din)``,
+        closed form for the RBF kernel: :math:`2\sum_a c_a k(x, x_a)(x - x_a)/l^2` with
+        :math:`c = (K + \sigma_\epsilon^2 I)^{-1} k_*`."""
+        n = self.n
+        if n == 0:
+            return torch.zeros_like(x)
+        X, _, m = self.data()
+        ks = self.kernel(X, x) * m.unsqueeze(-1)  # (S, n, N)
+        c = self.solve(ks)  # (K + s^2 I)^{-1} k_*
+        ck = c * ks
+        ls2 = (self.lengthscale**2).reshape(-1, 1, 1)
+        return 2.0 * (ck.sum(1).unsqueeze(-1) * x - ck.transpose(-1, -2) @ X) / ls2
+
+    def differentiable_mean(self, x: Tensor) -> Tensor:
+        """Posterior mean ``(S, N, Dy)`` with autograd through the GPyTorch kernel (the reference for
+        the closed-form Jacobian of :meth:`predict`)."""
+        mean = self.prior_mean(x)
+        if self.n > 0:
+            X, _, valid = self.data()
+            ks = self.covar_module(X, x).to_dense() * valid.unsqueeze(-1)
+            mean = mean + torch.einsum("snk,sno->sko", ks, self.alpha)
+        return mean
 
     @torch.no_grad()
     def predict_belief(

@@ -1,10 +1,12 @@
-r"""Scalable online GP variants behind the :class:`~dslearn.models.gp.OnlineGP` interface.
+r"""Scalable online GP variants behind the GP backend protocol of the exact
+:class:`~dslearn.learning.gp.OnlineGP` (:class:`dslearn.models.gp_backend.GPBackend`).
 
 All three keep ``S`` independent per-node models (one data set per sensor node) with one
-RBF kernel shared by the ``Dy`` outputs, and expose the same methods the GP motion model
-uses: ``append(x, y, valid)``, ``predict(x, jacobian, variance)``, ``differentiable_mean(x)``
-(autograd reference for the closed-form Jacobian), ``n``, ``noise_var``, ``lengthscale``,
-``outputscale``, ``prior_mean``, ``reset``, ``refactorize``.
+RBF kernel shared by the ``Dy`` outputs, and give every method of the protocol: ``append(x, y,
+valid)``, ``predict(x, jacobian, variance)``, ``variance_gradient(x)`` (closed form for each),
+``differentiable_mean(x)`` (autograd reference for the closed-form Jacobian), ``reserve``,
+``fit``, the hyperparameters, the model-file state, and the capability flags
+(``supports_belief``: the window GP only; ``grows_per_append``: none of them).
 
 * :class:`WindowGP` — budgeted exact GP on the last ``N`` points: after each append beyond
   ``N`` the oldest point is removed by a Cholesky *downdate of the leading row*, which is a
@@ -74,6 +76,9 @@ class WindowGP(OnlineGP):
     Cost ``O(N^2)`` per step whatever the number of points seen.
     """
 
+    #: the buffer holds ``window + 1`` rows from the start: :meth:`reserve` has nothing to do
+    grows_per_append = False
+
     def __init__(self, num_nodes: int, input_dim: int, output_dim: int, window: int = 500, **kw):
         if not isinstance(window, int) or window < 2:
             raise ConfigError(f"model.window={window!r} must be an integer >= 2")
@@ -123,9 +128,17 @@ class WindowGP(OnlineGP):
         super().reset()
         self.seen = 0
 
+    def _max_points(self) -> int | None:
+        return self.window
+
 
 # ------------------------------------------------------------------------------------------
 class _SparseBase(PriorMean, nn.Module):
+    #: :class:`~dslearn.models.gp_backend.GPBackend` capabilities: no belief-averaged prediction;
+    #: fixed-size statistics (nothing grows with the data, :meth:`reserve` has nothing to do)
+    supports_belief = False
+    grows_per_append = False
+
     def __init__(self, num_nodes, input_dim, output_dim, outputscale, lengthscale, noise_std, mean, dtype, device):
         super().__init__()
         check_positive("model.outputscale", outputscale)
@@ -146,24 +159,27 @@ class _SparseBase(PriorMean, nn.Module):
     #: posterior state tensors of the variant (besides the hyperparameters), see state_tensors
     STATE: tuple[str, ...] = ()
 
+    #: prefix of the state's names in a model file
+    PREFIX = "sparse."
+
     def state_tensors(self) -> dict[str, Tensor]:
         """The whole posterior (hyperparameters, the variant's ``STATE``, point count) as plain
-        tensors, for :meth:`GPMotionModel.save`."""
-        out = {k: getattr(self, k).clone() for k in ("_sf2", "_ls", "_noise", *self.STATE)}
-        out["n"] = torch.tensor(self.n)
+        tensors named ``sparse.<name>``, for :meth:`GPMotionModel.save`."""
+        out = {self.PREFIX + k: getattr(self, k).clone() for k in ("_sf2", "_ls", "_noise", *self.STATE)}
+        out[self.PREFIX + "n"] = torch.tensor(self.n)
         return out
 
     def load_state_tensors(self, state: dict[str, Tensor], source: str = "model file") -> None:
         """Inverse of :meth:`state_tensors`; every tensor must have this model's shape and dtype kind."""
         for k in ("_sf2", "_ls", "_noise", *self.STATE):
-            cur, v = getattr(self, k), state[k]
+            cur, v = getattr(self, k), state[self.PREFIX + k]
             if v.shape != cur.shape or v.dtype.is_floating_point != cur.dtype.is_floating_point:
                 raise ConfigError(f"{source}: {type(self).__name__} state {k!r} of shape {tuple(v.shape)} does not "
                                   f"match the configured model ({tuple(cur.shape)})")
         for k in ("_sf2", "_ls", "_noise", *self.STATE):
             cur = getattr(self, k)
-            setattr(self, k, state[k].to(cur.device, cur.dtype))
-        self.n = int(state["n"])
+            setattr(self, k, state[self.PREFIX + k].to(cur.device, cur.dtype))
+        self.n = int(state[self.PREFIX + "n"])
         self._invalidate()
 
     def _invalidate(self) -> None:
@@ -184,8 +200,15 @@ class _SparseBase(PriorMean, nn.Module):
     def refactorize(self) -> None:
         """Nothing cached depends on hyperparameters that change (they are fixed)."""
 
+    def reserve(self, points: int) -> None:
+        """Nothing to allocate: the statistics have a fixed size."""
+
     def fit(self, iters: int = 50, lr: float = 0.05) -> list[float]:
         raise ConfigError("model.fit_every > 0 is not available for the sparse GP variants (fixed hyperparameters)")
+
+    def predict_belief(self, x: Tensor, cov: Tensor, jacobian: bool = True, variance: bool = True):
+        raise ConfigError(f"model.inputs=belief: the {type(self).__name__} GP variant does not average over the "
+                          f"belief (only the exact and window GPs do; choose model.inputs=mean)")
 
     def _check(self, x: Tensor, y: Tensor, valid: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
         s = self.num_nodes
@@ -294,6 +317,20 @@ class SSGP(_SparseBase):
             coef_s = (a * torch.cos(z)).unsqueeze(-1) * mu[:, None, m2:, :]
             jac = self.prior_mean_jacobian(x) + (coef_c + coef_s).transpose(-1, -2) @ om.unsqueeze(1)
         return mean, var, jac
+
+    @torch.no_grad()
+    def variance_gradient(self, x: Tensor) -> Tensor:
+        r""":math:`\partial\sigma^2/\partial x = 2 (\partial\phi/\partial x)^T A^{-1}\phi(x)` in closed
+        form, ``(S, N, d)``."""
+        x = x.to(self.dtype_)
+        g = torch.cholesky_solve(self.phi(x).transpose(-1, -2), self.Lc)  # A^{-1} phi: (S, D, N)
+        om = self._freq()  # (S, m, d)
+        z = x @ om.transpose(-1, -2)  # (S, N, m)
+        a = torch.sqrt(self._sf2 * 2.0 / self.features).reshape(-1, 1, 1)
+        m2 = self.features // 2
+        # d phi_cos,i / dx = -a sin(z_i) om_i, d phi_sin,i / dx = a cos(z_i) om_i
+        coef = a * (torch.cos(z) * g[:, m2:].transpose(-1, -2) - torch.sin(z) * g[:, :m2].transpose(-1, -2))
+        return 2.0 * coef @ om
 
     def differentiable_mean(self, x: Tensor) -> Tensor:
         """Posterior mean with autograd through the features (reference for the Jacobian)."""
@@ -416,6 +453,17 @@ class SGPR(_SparseBase):
             kax = (ksT.unsqueeze(-1) * c.unsqueeze(1)).transpose(-1, -2) @ self.Z.unsqueeze(1)
             jac = self.prior_mean_jacobian(x) - (ka.unsqueeze(-1) * x.unsqueeze(-2) - kax) / ls2
         return mean, var, jac
+
+    @torch.no_grad()
+    def variance_gradient(self, x: Tensor) -> Tensor:
+        r""":math:`\partial\sigma^2/\partial x` in closed form, ``(S, N, d)``: with
+        :math:`c = (K_{uu}^{-1} - \Sigma^{-1}) k_u(x)`, :math:`2\sum_a c_a k(x, z_a)(x - z_a)/l^2`
+        (as for the exact GP, whose :math:`c` is :math:`(K + \sigma_\epsilon^2 I)^{-1} k_*`)."""
+        x = x.to(self.dtype_)
+        ku = self.kernel(self.Z, x) * self.zmask.unsqueeze(-1)  # (S, M, N)
+        ck = (torch.cholesky_solve(ku, self.Lu) - torch.cholesky_solve(ku, self.Ls)) * ku
+        ls2 = (self._ls**2).reshape(-1, 1, 1)
+        return 2.0 * (ck.sum(1).unsqueeze(-1) * x - ck.transpose(-1, -2) @ self.Z) / ls2
 
     def differentiable_mean(self, x: Tensor) -> Tensor:
         ku = self.kernel(self.Z, x) * self.zmask.unsqueeze(-1)

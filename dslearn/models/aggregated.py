@@ -23,12 +23,20 @@ expert's residual *and* variance (through the weights :math:`\beta_g` and the no
     + \sum_g \frac{\partial \mu_A}{\partial r_g}\frac{\partial r_g}{\partial x}
     + \sum_g \frac{\partial \mu_A}{\partial \sigma_g^2}\frac{\partial \sigma_g^2}{\partial x},
 
-with :math:`\partial r_g/\partial x` the GP mean Jacobian (closed form, :meth:`OnlineGP.predict`),
-:math:`\partial\sigma_g^2/\partial x = 2\sum_a c_a k(x, x_a)(x - x_a)/l^2`,
-:math:`c = (K + \sigma_\epsilon^2 I)^{-1} k_*` (closed form for the RBF kernel), and the partials of
-the aggregation rule obtained by autograd on :func:`dslearn.fusion.aggregation.aggregate` (a
-small elementwise graph). ``jacobian=frozen_weights`` drops the variance term (treats the
-weights as locally constant; cheaper, approximate).
+with :math:`\partial r_g/\partial x` the GP mean Jacobian and
+:math:`\partial\sigma_g^2/\partial x` the gradient of its latent variance, both from the node
+GPs' backend (:class:`~dslearn.models.gp_backend.GPBackend`: ``predict`` and ``variance_gradient``,
+closed form for every variant: exact and window GP
+:math:`2\sum_a c_a k(x, x_a)(x - x_a)/l^2` with :math:`c = (K + \sigma_\epsilon^2 I)^{-1} k_*`, SGPR
+the same over the inducing inputs with :math:`c = (K_{uu}^{-1} - \Sigma^{-1}) k_u`, SSGP
+:math:`2(\partial\phi/\partial x)^T A^{-1}\phi`), and the partials of the aggregation rule obtained by
+autograd on :func:`dslearn.fusion.aggregation.aggregate` (a small elementwise graph).
+``jacobian=frozen_weights`` drops the variance term (treats the weights as locally constant;
+cheaper, approximate). Every backend works: ``model.variant=exact|window|sgpr|ssgp``.
+
+The prediction is evaluated at each node's state (the belief's mean): ``model.inputs=belief`` is
+refused, as is ``model.jacobian=autograd`` (the Jacobian is the one above, chosen by
+``model.aggregation_jacobian``).
 
 grBCM is not offered here: it needs a communication expert (a data subset shared by all
 experts), which this setting does not have.
@@ -70,6 +78,13 @@ class AggregatedGPMotion(MotionModel):
         if not isinstance(base, GPMotionModel):
             raise ConfigError("AggregatedGPMotion wraps a GPMotionModel (a model=gp* option)")
         check_aggregation(method, jacobian)
+        if base.inputs != "mean":
+            raise ConfigError(f"model.inputs={base.inputs} is not available for an aggregated GP (model.aggregation="
+                              f"{method}): it aggregates the node GPs at the belief's mean; choose model.inputs=mean")
+        if base.jacobian_mode != "closed_form":
+            raise ConfigError(f"model.jacobian={base.jacobian_mode} is not available for an aggregated GP (model.aggregation="
+                              f"{method}): its Jacobian is set by model.aggregation_jacobian (exact | frozen_weights); "
+                              f"choose model.jacobian=closed_form")
         self.base = base
         self.method, self.normalise_beta, self.jacobian_mode = method, bool(normalise_beta), jacobian
         self.state_dim = base.state_dim
@@ -101,25 +116,15 @@ class AggregatedGPMotion(MotionModel):
         return self
 
     # prediction ------------------------------------------------------------------------
-    @torch.no_grad()
-    def _var_grad(self, xq: Tensor) -> Tensor:
-        r""":math:`\partial\sigma_g^2/\partial x` for every node GP ``g`` at queries ``xq (S, Q, Dx)`` -> ``(S, Q, Dx)``."""
-        gp = self.base.gp
-        n = gp.n
-        if n == 0:
-            return torch.zeros_like(xq)
-        X, _, m = gp.data()
-        ks = gp.kernel(X, xq) * m.unsqueeze(-1)  # (S, n, Q)
-        c = gp.solve(ks)  # (K + s^2 I)^{-1} k_*
-        ck = c * ks
-        ls2 = (gp.lengthscale**2).reshape(-1, 1, 1)
-        return 2.0 * (ck.sum(1).unsqueeze(-1) * xq - ck.transpose(-1, -2) @ X) / ls2
-
     def _aggregate(self, x: Tensor, jacobian: bool):
         """Mean (*x.shape), Jacobian (*x.shape, Dx) or None, variance (*x.shape[:-1], Dy)."""
-        base, gp = self.base, self.base.gp
-        xf = base._flat(x).to(gp.X)  # (S, N, Dx)
-        s, nq, dx = xf.shape
+        gp = self.base.gp
+        s, dx = self.num_nodes, self.state_dim
+        if x.shape[0] != s:
+            raise ValueError(f"AggregatedGPMotion expects the node dimension first: got {tuple(x.shape)}, S={s}")
+        ref = gp.outputscale
+        xf = x.reshape(s, -1, dx).to(dtype=ref.dtype, device=ref.device)  # (S, N, Dx)
+        nq = xf.shape[1]
         xq = xf.reshape(1, s * nq, dx).expand(s, s * nq, dx).contiguous()  # every state, every GP
         mean, var, jac = gp.predict(xq, jacobian=jacobian)  # (S, Q, Dy), (S, Q), (S, Q, Dy, Dx)
         pm = gp.prior_mean(xq)  # (S, Q, Dy)
@@ -141,7 +146,7 @@ class AggregatedGPMotion(MotionModel):
             jr = jac - gp.prior_mean_jacobian(xq)  # (S, Q, Dy, Dx)
             J = torch.einsum("qos,sqod->qod", gr, jr)
             if self.jacobian_mode == "exact":
-                J = J + torch.einsum("qos,sqd->qod", gv, self._var_grad(xq))
+                J = J + torch.einsum("qos,sqd->qod", gv, gp.variance_gradient(xq))
             J = J + gp.prior_mean_jacobian(xq).mean(0)
             J = J.reshape(s, nq, dy, dx)
         # keep each node's own states: query q = i * N + n belongs to node i

@@ -1,5 +1,6 @@
 r"""GP motion model (GP-EKF): a :class:`~dslearn.models.base.MotionModel` over one online GP
-backend per node (:mod:`dslearn.learning.gp`, :mod:`dslearn.learning.sparse`)."""
+backend per node (:mod:`dslearn.learning.gp`, :mod:`dslearn.learning.sparse`), used through the
+:class:`~dslearn.models.gp_backend.GPBackend` protocol only."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from dslearn.errors import ConfigError, check_choice
 from dslearn.learning.gp import FACTORS, OnlineGP
 from dslearn.learning.sparse import make_online_gp
 from dslearn.models.base import MotionModel
+from dslearn.models.gp_backend import GPBackend
 from dslearn.types import DTYPES, StepContext
 
 NOISE_MODES = ("latent", "predictive", "adaptive")
@@ -113,6 +115,7 @@ class GPMotionModel(MotionModel):
         self.noise_mode, self.jacobian_mode = noise, jacobian
         self.fit_every, self.fit_iters, self.fit_lr = int(fit_every), int(fit_iters), float(fit_lr)
         self.variant = variant
+        self.gp: GPBackend
         if variant == "exact" and not variant_options:
             self.gp = OnlineGP(num_nodes, state_dim, state_dim, outputscale, lengthscale, noise_std, mean, capacity, dtype, device,
                                factor_dtype=None if factor_dtype is None else DTYPES[factor_dtype], factor=factor)
@@ -125,7 +128,7 @@ class GPMotionModel(MotionModel):
             )
 
         if inputs == "belief":
-            if not hasattr(self.gp, "predict_belief"):
+            if not self.gp.supports_belief:
                 raise ConfigError(f"model.inputs=belief: only the exact and window GPs average over the belief "
                                   f"(model.variant={variant}; choose model.inputs=mean)")
             if jacobian != "closed_form":
@@ -214,17 +217,9 @@ class GPMotionModel(MotionModel):
 
     def _autograd_jacobian(self, x: Tensor) -> Tensor:
         """Jacobian of the posterior mean by autograd (reference path)."""
-        gp = self.gp
-        n = gp.n
         xf = self._flat(x).detach().requires_grad_(True)
         with torch.enable_grad():
-            mean = gp.prior_mean(xf)
-            if hasattr(gp, "differentiable_mean"):  # the scalable variants
-                mean = gp.differentiable_mean(xf)
-            elif n > 0:
-                X, _, valid = gp.data()
-                ks = gp.covar_module(X, xf).to_dense() * valid.unsqueeze(-1)
-                mean = mean + torch.einsum("snk,sno->sko", ks, gp.alpha)
+            mean = self.gp.differentiable_mean(xf)
             rows = [torch.autograd.grad(mean[..., o].sum(), xf, retain_graph=True)[0] for o in range(self.state_dim)]
         return torch.stack(rows, -2).reshape(*x.shape, self.state_dim).detach()
 
@@ -232,7 +227,7 @@ class GPMotionModel(MotionModel):
         self.gp.append(inputs, outputs, valid)
 
     def reserve(self, appends: int) -> None:
-        if hasattr(self.gp, "reserve"):  # the exact GP (one point per node per append)
+        if self.gp.grows_per_append:  # the exact GP (one point per node per append)
             self.gp.reserve(appends)
 
     def fit(self) -> "GPMotionModel":
@@ -242,40 +237,21 @@ class GPMotionModel(MotionModel):
     def save(self, path) -> None:
         """Save hyperparameters and the posterior state of every node: the data set (inputs,
         residual targets, mask) for the exact and window GPs, the sufficient statistics for
-        SGPR / SSGP (:meth:`~dslearn.learning.sparse.SSGP.state_tensors`)."""
-        if not isinstance(self.gp, OnlineGP):
-            sparse = {f"sparse.{k}": v for k, v in self.gp.state_tensors().items()}
-            torch.save(self._checkpoint(**sparse), path)
-            return
-        X, R, mask = self.gp.data()
-        torch.save(self._checkpoint(X=X.clone(), R=R.clone(), mask=mask.clone()), path)
+        SGPR / SSGP (the backend's :meth:`~dslearn.models.gp_backend.GPBackend.state_tensors`)."""
+        torch.save(self._checkpoint(**self.gp.state_tensors()), path)
 
     def load(self, path) -> "GPMotionModel":
         """Safe-load what :meth:`save` wrote; checks class, hyperparameter shapes and that the
-        saved state has this model's node count, dimensions and variant; the exact and window
-        GPs refactorise once."""
-        from dslearn.errors import ConfigError
-
-        if not isinstance(self.gp, OnlineGP):
-            names = self.gp.state_tensors().keys()
-            blob = self._read_checkpoint(path, extra=tuple(f"sparse.{k}" for k in names))
-            self.load_state_dict(blob["state_dict"])
-            self.gp.load_state_tensors({k: blob[f"sparse.{k}"] for k in names}, str(path))
-            return self
-        blob = self._read_checkpoint(path, extra=("X", "R", "mask"))
-        X, R, mask = blob["X"], blob["R"], blob["mask"]
-        s, d, o = self.gp.num_nodes, self.gp.input_dim, self.gp.output_dim
-        n = X.shape[1] if X.dim() == 3 else -1
-        if (X.dim(), R.dim(), mask.dim()) != (3, 3, 2) or X.shape != (s, n, d) or R.shape != (s, n, o) \
-                or mask.shape != (s, n) or mask.dtype != torch.bool:
-            raise ConfigError(
-                f"{path}: GP data of shape X {tuple(X.shape)}, R {tuple(R.shape)}, mask {tuple(mask.shape)} does not "
-                f"match the configured model ({s} nodes, input dim {d}, output dim {o})"
-            )
-        window = getattr(self.gp, "window", None)
-        if window is not None and n > window:
-            raise ConfigError(f"{path}: holds {n} points per node, more than model.window={window}")
-        self.load_state_dict(blob["state_dict"])
-        cap = self.gp.X.shape[1]
-        self.gp.set_data(X, R, mask, residual=True, capacity=cap + 128 * max(0, -(-(n - cap) // 128)))
+        saved state has this model's node count, dimensions and variant (the backend's
+        :meth:`~dslearn.models.gp_backend.GPBackend.load_state_tensors`); the exact and window
+        GPs factorise once, with the loaded hyperparameters. A refused file leaves the model as it was."""
+        names = tuple(self.gp.state_tensors())
+        blob = self._read_checkpoint(path, extra=names)
+        before = {k: v.clone() for k, v in self.state_dict().items()}
+        self.load_state_dict(blob["state_dict"])  # the hyperparameters first: the exact GP factorises with them
+        try:
+            self.gp.load_state_tensors({k: blob[k] for k in names}, str(path))
+        except Exception:
+            self.load_state_dict(before)  # a refused file changes nothing
+            raise
         return self

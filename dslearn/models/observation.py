@@ -8,6 +8,7 @@ from torch import Tensor
 from dslearn.errors import check_choice, check_positive
 from dslearn.types import AGENT_DIM
 from dslearn.models.base import ObservationModel
+from dslearn.models.gp_backend import GPBackend
 from dslearn.learning.gp import OnlineGP
 
 
@@ -66,7 +67,8 @@ class GPObservation(ObservationModel):
         super().__init__()
         check_choice("observation.noise", noise, ("latent", "predictive"))
         self.noise_mode = noise
-        self.gp = OnlineGP(num_nodes, AGENT_DIM, 2, outputscale, lengthscale, noise_std, mean, dtype=dtype, device=device)
+        # used through the GPBackend protocol: num_nodes, predict, noise_var, append
+        self.gp: GPBackend = OnlineGP(num_nodes, AGENT_DIM, 2, outputscale, lengthscale, noise_std, mean, dtype=dtype, device=device)
 
     def linearize(self, y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         s = self.gp.num_nodes
