@@ -708,14 +708,18 @@ def sweep_combinations(argv: list[str]) -> tuple[list[list[str]], bool, DictConf
 def check_jobs(combos: list[list[str]], compose, visit=None) -> tuple[int, int]:
     """Validate every job's configuration; ConfigError naming the job on the first bad one.
     ``compose(overrides)`` composes one configuration (Hydra's ``compose``); ``visit(cfg)``
-    (default :func:`~dslearn.schemas.core.validate_config`) is called with each job's
-    configuration, which is only valid during the call. Returns ``(jobs checked, full
-    compositions made)``."""
+    (default :func:`validate_job`) is called with each job's configuration, which is only valid
+    during the call, and with the job's override lines as ``lines=`` where it takes them.
+    Returns ``(jobs checked, full compositions made)``."""
+    import inspect
+
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
 
-    from dslearn.schemas.core import validate_config
-
-    visit = visit or validate_config
+    visit = visit or validate_job
+    try:
+        takes_lines = "lines" in inspect.signature(visit).parameters
+    except (TypeError, ValueError):
+        takes_lines = False
     many = len(combos) > 1
     split = []
     for i, combo in enumerate(combos):
@@ -739,19 +743,20 @@ def check_jobs(combos: list[list[str]], compose, visit=None) -> tuple[int, int]:
     constant = [g for g in split[0][0] if all(g[0] in {x[0] for x in s[0]} for s in split)] if split else []
     composer = _Composer(compose, tuple(g[0] for g in constant))
     const_lines = {g[0] for g in constant}
-    for groups, values, where in split:
+    for (groups, values, where), combo in zip(split, combos):
         cfg = None
+        job_visit = (lambda c, _lines=list(combo): visit(c, lines=_lines)) if takes_lines else visit
         try:
             cfg = composer.config([g for g in groups if g[0] not in const_lines], [g[0] for g in groups])
             undo = _scalar_changes(values, cfg)
             if undo is None:  # adds, deletes, containers: on a copy
                 cfg = copy.deepcopy(cfg)
                 ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
-                visit(cfg)
+                job_visit(cfg)
             else:  # plain key=scalar changes: in place, undone afterwards (no copy: ~10 ms a job)
                 try:
                     ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
-                    visit(cfg)
+                    job_visit(cfg)
                 finally:
                     for parent, leaf, old in reversed(undo):
                         with _open(parent):
@@ -761,6 +766,56 @@ def check_jobs(combos: list[list[str]], compose, visit=None) -> tuple[int, int]:
         except Exception as e:  # noqa: BLE001 - Hydra/OmegaConf composition errors
             raise ConfigError(f"{_friendly(e, cfg)}{where}") from None
     return len(combos), composer.composes
+
+
+def override_keys(lines) -> list[tuple[str, str]]:
+    """``(key, line)`` of each override line that sets the configuration (``consensus=ci`` ->
+    ``consensus``, ``+consensus.x=1`` / ``~consensus.x`` -> ``consensus.x``); Hydra's own keys and
+    options written into another package (``group@pkg=option``) are left out."""
+    out = []
+    for line in lines:
+        o = parse_override(line)
+        key = o.key_or_group
+        if key.startswith("hydra") or o.package is not None:
+            continue
+        out.append((key, line))
+    return out
+
+
+def validate_job(cfg: DictConfig, lines=()) -> None:
+    """One job's whole check: :func:`~dslearn.schemas.core.validate_config`, after refusing an
+    override (of the job's ``lines``: command line and sweep) of a root group its task does not
+    read, or of a task key its configuration does not read
+    (:func:`~dslearn.schemas.base.check_overrides`)."""
+    from dslearn.schemas.base import check_overrides
+    from dslearn.schemas.core import validate_config
+
+    if lines and "task" in cfg and cfg.task is not None and cfg.task.get("name") is not None:
+        check_overrides(cfg, override_keys(lines))
+    validate_config(cfg)
+
+
+#: the root groups and keys of task ``liu_dgpt`` that became its own keys (:func:`_moved`)
+MOVED = {
+    "tracker": ("task.tracker", "{}"),
+    "aggregation": ("task.aggregations", "[{}]"),
+    "gp_input": ("task.gp_input", "{}"),
+    "noise": ("task.noises", "[{}]"),
+}
+
+
+def _moved(o) -> str | None:
+    """The message for an override of a group / key that moved into task ``liu_dgpt`` (or None)."""
+    key = o.key_or_group
+    if key not in MOVED or _is_group(key) or o.is_delete() or o.package is not None:
+        return None
+    new_key, form = MOVED[key]
+    try:
+        vals = list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.get_value_element_as_str()]
+    except Exception:  # noqa: BLE001 - e.g. a range sweep: show the value as written
+        vals = [o.input_line.split("=", 1)[-1]]
+    new = f"{new_key}=" + ",".join(form.format(v) for v in vals)
+    return f"{o.input_line}: {key} is no longer a root group or key; it is a key of task=liu_dgpt: write {new}"
 
 
 def _friendly(e: Exception, cfg: DictConfig | None = None) -> str:
@@ -807,6 +862,9 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
             if o.key_or_group == "hydra.searchpath" and not o.is_delete():
                 CONF_DIRS.extend(d for d in _user_search_dirs(o.value()) if d not in CONF_DIRS)
         for o in parsed:
+            moved = _moved(o)
+            if moved is not None:
+                return moved
             if o.key_or_group in ("hydra.run.dir", "hydra.sweep.dir"):
                 _check_output_dir(o.key_or_group, str(o.value()))
             if o.key_or_group == "hydra/launcher":
@@ -826,10 +884,8 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
                 key = tuple(ov)
                 return seeded.pop(key) if key in seeded else compose("config", overrides=list(ov))
 
-            def _visit(cfg):
-                from dslearn.schemas.core import validate_config
-
-                validate_config(cfg)
+            def _visit(cfg, lines=()):
+                validate_job(cfg, lines)
                 if plan is not None and not multirun:
                     where = _resolved_run_dir(cfg)
                     if where is not None:

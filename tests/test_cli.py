@@ -54,7 +54,7 @@ def _jobs(argv, compose):
 @pytest.mark.parametrize("argv", [
     ["-m", "model=lin,gp_sgpr", "consensus=individual,hybrid_nodes", "network.meas_std=0.1,0.3"],
     ["experiment=yu_table1", "model=lin,sfm"],     # the experiment's sweeper params; the command line's model wins
-    ["-m", "experiment=liu_table1", "scenario=s1,s2", "noise=1,4", "task.mc_runs=2,3"],
+    ["-m", "experiment=liu_table1", "scenario=s1,s2", "task.noises=[1],[4]", "task.mc_runs=2,3"],
     ["-m", "data.eval_at=[0],[1,2]", "data.train_episodes=2,3", "+max_memory_gb=5"],
 ])
 def test_every_job_config_equals_hydras(argv):

@@ -4,7 +4,8 @@ in Hydra's ConfigStore; :func:`validate_config` checks a composed configuration 
 
 import importlib
 
-from dslearn.schemas.base import TASKS, check_ranges, ranged, register_task, validate_task
+from dslearn.schemas.base import (ROOT_GROUPS, TASKS, check_overrides, check_ranges, ranged, register_task, task_uses,
+                                  validate_task)
 from dslearn.schemas.core import validate_config  # the root and Yu group schemas; the whole check
 
 #: the modules that register a task schema (one per study)
@@ -17,4 +18,5 @@ for _m in TASK_MODULES:
         if _e.name != f"dslearn.schemas.{_m}":
             raise
 
-__all__ = ["TASKS", "TASK_MODULES", "check_ranges", "ranged", "register_task", "validate_config", "validate_task"]
+__all__ = ["ROOT_GROUPS", "TASKS", "TASK_MODULES", "check_overrides", "check_ranges", "ranged", "register_task",
+           "task_uses", "validate_config", "validate_task"]

@@ -13,6 +13,9 @@ A study's configuration is checked in three stages, all before any work starts:
    allowed values.
 3. **Cross-field rules**, which a schema cannot state, in the one ``check(cfg)`` function a task
    registers with :func:`register_task`.
+4. **What the task reads of the root groups** (``uses=`` of :func:`register_task`, with what it
+   uses instead of the others): ``dslearn-run``'s start-up check refuses an override, on the
+   command line or in a sweep, of a root group the task does not read (:func:`check_overrides`).
 
 Constructors then check only what needs the built objects (shapes, connectivity).
 """
@@ -104,24 +107,91 @@ def check_ranges(node: Any, schema: type, prefix: str) -> None:
         _check_value(name, v, rules)
 
 
+#: the root config groups a task may read besides its own ``task`` node (``conf/config.yaml``'s defaults)
+ROOT_GROUPS = ("scenario", "network", "model", "observation", "consensus", "filter", "data")
+
+
 @dataclasses.dataclass(frozen=True)
 class TaskSpec:
+    """A task's schema, cross-field check and what it reads of the root groups.
+
+    ``uses``: the root groups (:data:`ROOT_GROUPS`) the task reads, or keys under one it reads alone
+    (``"consensus.iterations"``); a function of the composed config where that depends on the task's
+    own keys. ``instead``: per root group it does not use, what it uses instead (for the message).
+    ``unused``: a function of the composed config giving task keys this configuration does not read
+    (``{"task.aggregations": "why"}``). Overriding any of them is refused by :func:`check_overrides`."""
+
     name: str
     schema: type
     check: Callable[[DictConfig], None] | None = None
+    uses: Any = ()
+    instead: dict = dataclasses.field(default_factory=dict)
+    unused: Callable[[DictConfig], dict] | None = None
 
 
 #: task name -> its schema and cross-field check (filled by :func:`register_task`)
 TASKS: dict[str, TaskSpec] = {}
 
 
-def register_task(name: str, schema: type, check: Callable[[DictConfig], None] | None = None) -> type:
-    """Store ``schema`` as ``schema/task/<name>`` in Hydra's ConfigStore and remember its check."""
+def register_task(name: str, schema: type, check: Callable[[DictConfig], None] | None = None, *,
+                  uses, instead: dict | None = None, unused: Callable[[DictConfig], dict] | None = None) -> type:
+    """Store ``schema`` as ``schema/task/<name>`` in Hydra's ConfigStore and remember its check and
+    the root groups it reads (``uses``, see :class:`TaskSpec`; every task declares them)."""
     from hydra.core.config_store import ConfigStore
 
+    paths = () if callable(uses) else tuple(uses)
+    bad = [u for u in paths if u.split(".")[0] not in ROOT_GROUPS]
+    if bad:
+        raise TypeError(f"task {name}: uses={bad} names no root group; root groups: {list(ROOT_GROUPS)}")
     ConfigStore.instance().store(group="schema/task", name=name, node=schema)
-    TASKS[name] = TaskSpec(name, schema, check)
+    TASKS[name] = TaskSpec(name, schema, check, uses if callable(uses) else paths, dict(instead or {}), unused)
     return schema
+
+
+def task_uses(cfg: DictConfig) -> tuple[str, ...]:
+    """The root groups (or keys under one) the task of ``cfg`` reads with this configuration
+    (every root group for a task that is not registered)."""
+    spec = TASKS.get(str(cfg.task.name))
+    if spec is None:
+        return ROOT_GROUPS
+    return tuple(spec.uses(cfg)) if callable(spec.uses) else tuple(spec.uses)
+
+
+def _within(key: str, path: str) -> bool:
+    return key == path or key.startswith(path + ".")
+
+
+def check_overrides(cfg: DictConfig, overrides) -> None:
+    """Refuse an override of a root group the task of ``cfg`` does not read, or of a task key this
+    configuration does not read. ``overrides``: ``(key, line)`` pairs of the command line / sweep
+    (``key`` = the group or the dotted key the line sets, e.g. ``consensus`` for ``consensus=ci``,
+    ``consensus.iterations`` for ``consensus.iterations=3``). Only what the command line or a sweep
+    sets counts: an experiment file that selects groups for its own task is not an override here."""
+    spec = TASKS.get(str(cfg.task.name))
+    if spec is None:
+        return
+    used = None
+    unused = None
+    for key, line in overrides:
+        head = key.split(".")[0]
+        if head in ROOT_GROUPS:
+            if used is None:
+                used = task_uses(cfg)
+            if any(_within(key, u) for u in used):
+                continue
+            inside = [u for u in used if u.split(".")[0] == head]
+            why = spec.instead.get(head)
+            tail = f" ({why})" if why else ""
+            if inside:
+                raise ConfigError(f"task={spec.name} uses only {', '.join(inside)} of the root group {head}{tail}; "
+                                  f"remove {line}")
+            raise ConfigError(f"task={spec.name} does not use the root group {head}{tail}; remove {line}")
+        if head == "task" and spec.unused is not None:
+            if unused is None:
+                unused = spec.unused(cfg) or {}
+            for k, why in unused.items():
+                if _within(key, k):
+                    raise ConfigError(f"{k} is not used by task={spec.name} {why}; remove {line}")
 
 
 def validate_task(cfg: DictConfig) -> None:

@@ -137,4 +137,15 @@ def check(cfg: DictConfig) -> None:
                           f"task.steps * task.dt = {t['steps'] * t['dt']} s")
 
 
-register_task("braga_tbn", BragaTask, check)
+#: what the study uses in place of each root group (it reads none of them: every part is in ``task``)
+INSTEAD = {
+    "scenario": "its flights are task.steps, task.dt, task.start and task.formation_spacing over task.terrain",
+    "network": "its network is task.network",
+    "model": "its motion model is task.process_noise with the terrain modes task.modes",
+    "observation": "its measurement model is the terrain map task.terrain with task.modes",
+    "consensus": "its fusion is task.consensus with task.strategies",
+    "filter": "its filter is the RBPF of task.num_particles, task.resampling and task.em",
+    "data": "its Monte Carlo runs are task.mc_runs",
+}
+
+register_task("braga_tbn", BragaTask, check, uses=(), instead=INSTEAD)

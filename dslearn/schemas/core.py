@@ -21,8 +21,11 @@ What is checked:
   swamp the machine is refused up front with the estimate in the message;
 * for the core study (``task.name`` = yu or yu_faults): ``scenario``, ``network``, ``model``,
   ``observation``, ``consensus``, ``data``, ``filter`` — closed schemas (unknown keys fail) with
-  range checks. Other tasks' groups (tracker, aggregation, gp_input, lstm, scenario s1..s3, ...)
-  stay open: their studies validate them;
+  range checks. Other tasks' options of these groups (scenario s1..s3, ...) and the groups outside
+  the root defaults (lstm, dataset, folds) stay open: their studies validate them; which root
+  groups a task reads at all is declared with its schema (:func:`dslearn.schemas.base.register_task`),
+  and the start-up check refuses an override of one it does not read
+  (:func:`dslearn.schemas.base.check_overrides`);
 * then the core study's parts are built (:func:`check_parts`: models on the ``meta`` device, no
   memory), so that what only a constructor can check (the aggregation rule of an aggregated GP,
   the UKF's parameters against the state dimension, the network's connectivity, ...) is refused
@@ -150,6 +153,33 @@ class ModelSchema(PartSchema):
     aggregation: Optional[str] = None
     normalise_beta: Optional[bool] = None
     aggregation_jacobian: Optional[str] = None
+    # LSTM / Social-LSTM (dslearn.models.lstm.SocialLSTM.for_scenario; ranges: its constructor, built by check_parts)
+    obs_len: Optional[int] = None
+    pred_len: Optional[int] = None
+    embed: Optional[int] = None
+    hidden: Optional[int] = None
+    pooling: Optional[str] = None
+    grid: Optional[int] = None
+    neighbourhood: Optional[float] = None
+    schedule: Optional[str] = None
+    epochs: Optional[int] = None
+    batch_size: Optional[int] = None
+    lr: Optional[float] = None
+    patience: Optional[int] = None
+    min_delta: Optional[float] = None
+    lr_factor: Optional[float] = None
+    lr_patience: Optional[int] = None
+    min_lr: Optional[float] = None
+    val_fraction: Optional[float] = None
+    process_noise: Optional[str] = None
+    train_on: Optional[str] = None  # offline models: truth | fused (real-data tracking only) | null (the study's recipe)
+    # social force fitted offline (dslearn.learning.sfm_fit.FittedSocialForce.for_scenario; ranges: its factory)
+    desired_steps: Optional[int] = None
+    tau_grid: Optional[List[float]] = None
+    alpha_grid: Optional[List[float]] = None
+    beta_grid: Optional[List[float]] = None
+    refine_iters: Optional[int] = None
+    refine_lr: Optional[float] = None
 
 
 @dataclass
@@ -281,7 +311,7 @@ def _check_schema(node: Any, schema: type, prefix: str) -> DictConfig:
 
 def known_root_keys() -> set[str]:
     groups = {p.name for d in CONF_DIRS if d.is_dir() for p in d.iterdir() if p.is_dir() and not p.name.startswith("_")}
-    return {f.name for f in fields(RootSchema)} | {"task", "hydra", "noise"} | groups | set(GROUP_SCHEMAS)
+    return {f.name for f in fields(RootSchema)} | {"task", "hydra"} | groups | set(GROUP_SCHEMAS)
 
 
 def validate_config(cfg: DictConfig) -> None:
@@ -497,6 +527,12 @@ def validate_core(cfg: DictConfig) -> None:
         from dslearn.learning.gp import FACTORS
 
         check_choice("model.factor", m.factor, FACTORS)
+    if m.train_on is not None:
+        check_choice("model.train_on", m.train_on, ("truth", "fused"))
+        if m.train_on == "fused":
+            raise ConfigError(f"model.train_on=fused is not available in task={cfg.task.name}: it trains offline models "
+                              "on the true tracks of its training episodes (model.train_on=truth or null); the "
+                              "network's CM-fused estimates are the real-data study's (task=ethucy_tracking)")
     # observation
     check_choice("observation.name", ob.name, ("linear", "gp"))
     check_positive("observation.noise_std", ob.noise_std)

@@ -109,4 +109,16 @@ def check(cfg: DictConfig) -> None:
     schedule_from_config(t.lstm, prefix="task.lstm")
 
 
-register_task("ethucy_forecast", EthucyForecastTask, check)
+#: what the study uses in place of each root group (it reads none of them: it forecasts from the tracks)
+_NO_TRACKING = "it forecasts from the ground-truth tracks of task.scenes"
+INSTEAD = {
+    "scenario": "its scenes are task.scenes, data sets of task.datasets, with the folds task.folds",
+    "network": f"{_NO_TRACKING}: no sensor network",
+    "model": "its predictors are task.predictors, with task.gp and task.lstm",
+    "observation": f"{_NO_TRACKING}: no observation model",
+    "consensus": f"{_NO_TRACKING}: no fusion",
+    "filter": f"{_NO_TRACKING}: no filter",
+    "data": "its windows are task.obs_len + task.pred_len, at most task.max_train_windows / task.max_test_windows",
+}
+
+register_task("ethucy_forecast", EthucyForecastTask, check, uses=(), instead=INSTEAD)

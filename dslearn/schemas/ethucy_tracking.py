@@ -3,7 +3,7 @@ on ETH/UCY (``experiment=real_tables`` / ``experiment=gp_vs_lstm``). Keys and ty
 composition, ranges by :func:`dslearn.schemas.base.check_ranges`, the rest by :func:`check`."""
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import Any, Dict, List, Optional
 
 from omegaconf import DictConfig
 
@@ -13,11 +13,13 @@ from dslearn.schemas.base import ranged, register_task
 from dslearn.schemas.ethucy_forecast import check_datasets, check_device
 
 PROTOCOLS = ("tables", "data_size")
-MODELS = ("gp", "gp_cv", "lin", "sfm", "lstm")
+#: the default task.models: conf/model options (gp = the root model group; dslearn.studies.ethucy_tracking.ALIASES)
+MODELS = ("gp", "gp_cv", "lin", "sfm_fit", "lstm")
 CRITERIA = ("mutual", "closest")
 SPLITS = ("time", "scene", "random")  # as dslearn.data.episodes; "scene" is refused with the reason in check()
 AGGREGATED_TARGET = "dslearn.models.aggregated.aggregated_for_scenario"
 GP_TARGET = "dslearn.models.gp.GPMotionModel.for_scenario"
+TRAIN_ON = ("fused", "truth")  # what offline models learn from (dslearn.studies.ethucy_tracking.OfflineData)
 GP_INPUTS = ("belief", "mean")  # dslearn.models.gp.INPUTS: where the EKF evaluates the GPs
 FUSIONS = ("hybrid", "cm", "ci", "ce", "individual")
 
@@ -34,50 +36,10 @@ class RealNetwork:
 
 
 @dataclass
-class RealLin:
-    noise_std: float = ranged(0.1, gt=0.0)
-
-
-@dataclass
-class SfmGrid:
-    tau: List[float] = ranged(factory=lambda: [0.25, 0.5, 1.0, 2.0, 4.0, 8.0], gt=0.0, each=True, min_len=1)
-    alpha: List[float] = ranged(factory=lambda: [0.0, 0.5, 1.0, 2.0, 4.0, 8.0], ge=0.0, each=True, min_len=1)
-    beta: List[float] = ranged(factory=lambda: [0.25, 0.5, 1.0, 2.0, 4.0], gt=0.0, each=True, min_len=1)
-
-
-@dataclass
-class RealSfm:
-    """``task.sfm``: the social-force fit (:func:`dslearn.learning.sfm_fit.fit_social_force`)."""
+class CmFusion:
+    """``task.cm_fusion``: the filter that makes the fused training tracks (:func:`dslearn.studies.ethucy_tracking.cm_fused`)."""
 
     noise_std: float = ranged(0.1, gt=0.0)
-    fit_on: str = ranged("truth", choices=("truth", "fused"))
-    desired_steps: int = ranged(1, ge=1)
-    grid: SfmGrid = field(default_factory=SfmGrid)
-    refine_iters: int = ranged(150, ge=0)
-    refine_lr: float = ranged(0.05, gt=0.0)
-
-
-@dataclass
-class RealLSTM:
-    """``task.lstm``: the paper's VI-C network and schedule."""
-
-    embed: int = ranged(64, ge=1)
-    hidden: int = ranged(64, ge=1)
-    obs_len: int = ranged(2, ge=1)
-    pred_len: int = ranged(10, ge=1)
-    schedule: str = ranged("fixed", choices=("fixed", "early_stopping"))
-    epochs: int = ranged(50, ge=1)
-    batch_size: int = ranged(8, ge=1)
-    lr: float = ranged(1.0e-3, gt=0.0)
-    patience: Optional[int] = ranged(10, ge=1)
-    min_delta: float = ranged(0.0, ge=0.0, lt=1.0)
-    lr_factor: Optional[float] = ranged(None, gt=0.0, lt=1.0)
-    lr_patience: int = ranged(3, ge=1)
-    min_lr: float = ranged(0.0, ge=0.0)
-    val_fraction: float = ranged(0.2, gt=0.0, lt=1.0)
-    pooling: str = ranged("none", choices=("none", "social"))
-    grid: int = ranged(4, ge=1)
-    neighbourhood: float = ranged(2.0, gt=0.0)
 
 
 @dataclass
@@ -100,12 +62,12 @@ class EthucyTrackingTask:
     train_episodes: int = ranged(128, ge=1)
     test_episodes: int = ranged(25, ge=1)
     plot_episodes: int = ranged(3, ge=0)
-    models: List[str] = ranged(factory=lambda: list(MODELS), choices=MODELS, each=True, min_len=1)
+    models: List[str] = ranged(factory=lambda: list(MODELS), min_len=1)  # conf/model/<name>.yaml (checked in check())
+    model_keys: Dict[str, Dict[str, Any]] = field(default_factory=dict)  # entry -> keys of its option to replace
+    train_on: str = ranged("fused", choices=TRAIN_ON)
     gp_inputs: str = ranged("belief", choices=GP_INPUTS)
     network: RealNetwork = field(default_factory=RealNetwork)
-    lin: RealLin = field(default_factory=RealLin)
-    sfm: RealSfm = field(default_factory=RealSfm)
-    lstm: RealLSTM = field(default_factory=RealLSTM)
+    cm_fusion: CmFusion = field(default_factory=CmFusion)
     data_sizes: List[int] = ranged(factory=lambda: [8, 16, 32, 64, 128], ge=1, each=True)
     seeds: int = ranged(3, ge=1)
     synthetic: bool = False
@@ -122,46 +84,12 @@ def check(cfg: DictConfig) -> None:
             "task.split=scene is not supported by this study: the GP's inputs are absolute positions "
             "in each scene's own frame and the network is placed around one scene; use time or random"
         )
-    models = list(t.models)
-    if t.protocol == "data_size":
-        if "lstm" not in models or not {"gp", "gp_cv"} & set(models):
-            raise ConfigError("task.models must contain 'lstm' and 'gp' (or 'gp_cv') for task.protocol=data_size")
-        if not list(t.data_sizes):
-            raise ConfigError("task.data_sizes must list at least one number of training episodes")
+    if t.protocol == "data_size" and not list(t.data_sizes):
+        raise ConfigError("task.data_sizes must list at least one number of training episodes")
     check_scene_names("task.scenes", list(t.scenes), t)
     if not list(t.scenes) and not (t.protocol == "data_size" and t.synthetic):
         raise ConfigError("task.scenes must name at least one scene (or set task.synthetic=true for data_size)")
-    if t.sfm.desired_steps > t.steps + 1:
-        raise ConfigError(f"task.sfm.desired_steps={t.sfm.desired_steps} must be <= task.steps + 1")
-    from dslearn.models.lstm import schedule_from_config
-
-    schedule_from_config(t.lstm, prefix="task.lstm")
-    if t.lstm.obs_len + t.lstm.pred_len > t.steps + 1:
-        raise ConfigError(
-            f"task.lstm.obs_len + task.lstm.pred_len = {t.lstm.obs_len + t.lstm.pred_len} must be <= task.steps + 1 "
-            f"= {t.steps + 1} (the LSTM's training windows are cut from the episodes)"
-        )
-    if {"gp", "gp_cv"} & set(models):
-        target = cfg.model.get("_target_")
-        if target not in (GP_TARGET, AGGREGATED_TARGET):
-            raise ConfigError(f"model._target_={target!r} (model={cfg.model.get('name')}) is not allowed with task.models "
-                              f"gp / gp_cv; choose a GP model group (model=gp, gp_increment, gp_window, gp_rbcm, ...: "
-                              f"_target_ {GP_TARGET} or {AGGREGATED_TARGET})")
-        variant = cfg.model.get("variant") or "exact"
-        if t.gp_inputs == "belief" and (target == AGGREGATED_TARGET or variant not in ("exact", "window")):
-            raise ConfigError(f"task.gp_inputs=belief averages the exact or window GP over the belief; model="
-                              f"{cfg.model.get('name')} ({'aggregated' if target == AGGREGATED_TARGET else variant}) "
-                              f"has no such average: choose task.gp_inputs=mean or model=gp_increment, gp, gp_window")
-        if t.gp_inputs == "belief" and cfg.model.get("jacobian") == "autograd":
-            raise ConfigError("task.gp_inputs=belief: the Jacobian averaged over the belief is closed form; choose "
-                              "model.jacobian=closed_form or task.gp_inputs=mean")
-        if target == AGGREGATED_TARGET:
-            from dslearn.models.aggregated import RULES
-
-            if "gp_cv" in models:
-                raise ConfigError(f"task.models contains gp_cv (the GP with a constant-velocity prior mean), which has no "
-                                  f"aggregated form; with model={cfg.model.get('name')} use task.models without gp_cv")
-            check_choice("model.aggregation", cfg.model.get("aggregation"), RULES)
+    check_models(cfg)
     c = cfg.consensus
     if c.name == "centralized":
         raise ConfigError("consensus.name=centralized is a reference, not a distributed filter; use hybrid, cm, ci, ce or individual")
@@ -175,4 +103,108 @@ def check(cfg: DictConfig) -> None:
             raise ConfigError(f"filter.{k}={v!r} must be > 0")
 
 
-register_task("ethucy_tracking", EthucyTrackingTask, check)
+def check_models(cfg: DictConfig) -> None:
+    """``task.models`` and ``task.model_keys``: every entry a ``conf/model`` option (or a legacy name,
+    :data:`dslearn.studies.ethucy_tracking.ALIASES`), each runnable on real data (its ``_target_`` one
+    of :data:`~dslearn.studies.ethucy_tracking.REAL_TARGETS`), built once on the ``meta`` device with
+    the episodes' shape (every refusal of its factory, naming the entry), the GP's ``task.gp_inputs``
+    rules, and the episodes an offline fit holds out."""
+    from dslearn.conf_paths import CONF_DIRS
+    from dslearn.studies import ethucy_tracking as et
+
+    t = cfg.task
+    names = [str(m) for m in t.models]
+    files = sorted({p.stem for d in CONF_DIRS if (d / "model").is_dir() for p in (d / "model").glob("*.yaml")})
+    for n in names:
+        if n not in et.ALIASES and n not in files:
+            raise ConfigError(f"task.models contains {n!r}: no conf/model/{n}.yaml; choose from {files} or "
+                              f"{sorted(et.ALIASES)} (gp: the root model group; sfm: sfm_fit labelled sfm)")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"task.models={names} names an entry twice")
+    for n in (t.get("model_keys") or {}):
+        if str(n) not in names:
+            raise ConfigError(f"task.model_keys.{n} changes an entry that task.models={names} does not list")
+    entries = et.model_entries(cfg)
+    labels = [label for _, label, _ in entries]
+    if len(set(labels)) != len(labels):
+        raise ConfigError(f"task.models={names} gives two entries the same label {labels} (the rows' model column)")
+    sizes = [int(t.train_episodes)] if t.protocol == "tables" else [int(v) for v in t.data_sizes]
+    for n, label, spec in entries:
+        where = f"task.models entry {n!r}" + (" (the root model group)" if et.ALIASES.get(n, (n,))[0] is None else "")
+        target = spec.get("_target_")
+        if target not in et.REAL_TARGETS:
+            raise ConfigError(f"{where}: model._target_={target!r} (model {label}) does not run on real data (its "
+                              f"parameters come from a simulation, or it is not sized by a real scene); choose an "
+                              f"option whose _target_ is one of {list(et.REAL_TARGETS)} (sfm_fit for the social force)")
+        if target in (GP_TARGET, et.GP_CV_TARGET, AGGREGATED_TARGET):
+            _check_gp(t, spec, label)
+        model = _meta_model(cfg, spec, where)
+        if model.learns_offline:
+            c = getattr(model, "offline", {})
+            holds_out = c.get("schedule") == "early_stopping" or c.get("process_noise") == "residuals"
+            if holds_out and min(sizes) < 2:
+                raise ConfigError(f"{where}: model.schedule={c.get('schedule')} / model.process_noise="
+                                  f"{c.get('process_noise')} hold whole training episodes out, which needs >= 2; "
+                                  f"{'task.train_episodes' if t.protocol == 'tables' else 'task.data_sizes'} gives "
+                                  f"{min(sizes)} (or set task.model_keys.{n}.process_noise=fixed)")
+
+
+def _check_gp(t, spec: dict, label: str) -> None:
+    target = spec.get("_target_")
+    variant = spec.get("variant") or "exact"
+    if t.gp_inputs == "belief" and (target == AGGREGATED_TARGET or variant not in ("exact", "window")):
+        raise ConfigError(f"task.gp_inputs=belief averages the exact or window GP over the belief; model "
+                          f"{label} ({'aggregated' if target == AGGREGATED_TARGET else variant}) has no such average: "
+                          f"choose task.gp_inputs=mean or model=gp_increment, gp, gp_window")
+    if t.gp_inputs == "belief" and spec.get("jacobian") == "autograd":
+        raise ConfigError(f"task.gp_inputs=belief: the Jacobian averaged over the belief is closed form; model {label} "
+                          "has model.jacobian=autograd: choose model.jacobian=closed_form or task.gp_inputs=mean")
+    if target == AGGREGATED_TARGET:
+        from dslearn.models.aggregated import RULES
+
+        check_choice("model.aggregation", spec.get("aggregation"), RULES)
+
+
+def _meta_model(cfg: DictConfig, spec: dict, where: str):
+    """The entry's model built on the ``meta`` device (shapes only) for episodes of the task's shape."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from dslearn.compose import build_motion_model, resolve_dtype
+    from dslearn.sim.real import RealScenario
+
+    t = cfg.task
+    scenario = RealScenario(int(t.agents), float(t.dt), int(t.steps), (0.0, 1.0, 0.0, 1.0))
+    network = SimpleNamespace(num_nodes=int(t.network.num_sensors))
+    try:
+        return build_motion_model(spec, scenario, network, resolve_dtype(cfg.get("dtype", "float64")), torch.device("meta"))
+    except ConfigError as e:
+        raise ConfigError(f"{where}: {e}") from None
+
+
+def uses(cfg: DictConfig) -> tuple[str, ...]:
+    """The root groups the study reads (:mod:`dslearn.studies.ethucy_tracking`): the fusion
+    (``consensus``), the filter (``filter``: initial prior, gate, prediction step) and the sensor model
+    (``observation``) always; the root model (``model``) when ``task.models`` lists ``gp`` (the root
+    model group's entry); the synthetic Yu scenario and network (``scenario``, ``network``) with
+    ``task.protocol=data_size`` and ``task.synthetic=true``."""
+    t = cfg.task
+    out = ["consensus", "filter", "observation"]
+    if "gp" in {str(m) for m in t.models}:
+        out.append("model")
+    if str(t.protocol) == "data_size" and bool(t.get("synthetic", False)):
+        out += ["scenario", "network"]
+    return tuple(out)
+
+
+_SYNTHETIC = "the root scenario and network are the synthetic source of task.protocol=data_size task.synthetic=true"
+INSTEAD = {
+    "scenario": f"its scenes are task.scenes, data sets of task.datasets; {_SYNTHETIC}",
+    "network": f"its network is task.network, placed around each scene; {_SYNTHETIC}",
+    "model": "the root model is the entry gp of task.models, run only when it is listed; its other models are "
+             "conf/model options listed in task.models (their keys: task.model_keys.<entry>)",
+    "data": "its episodes are task.train_episodes and task.test_episodes (task.data_sizes for data_size)",
+}
+
+register_task("ethucy_tracking", EthucyTrackingTask, check, uses=uses, instead=INSTEAD)

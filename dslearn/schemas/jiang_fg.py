@@ -191,4 +191,15 @@ def check(cfg: DictConfig) -> None:
                               f"task.ablations.{name}.measurement_var=sample")
 
 
-register_task("jiang_fg", JiangTask, check)
+#: what the study uses in place of each root group (it reads none of them: every part is in ``task``)
+INSTEAD = {
+    "scenario": "its scenario is task.scenario (the field, Eqs. 20-22)",
+    "network": "its sensors are task.scenario.sensors",
+    "model": "its parameter model is task.scenario.coefficients with task.tracker's noise",
+    "observation": "its sensors' noise is task.sigma_y with task.num_samples samples",
+    "consensus": "its fusion is the factor graph of task.fg",
+    "filter": "its filter is the EKF-FG of task.tracker",
+    "data": "its Monte Carlo runs are task.mc_runs",
+}
+
+register_task("jiang_fg", JiangTask, check, uses=(), instead=INSTEAD)

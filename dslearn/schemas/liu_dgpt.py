@@ -1,23 +1,23 @@
 """Schema of task ``liu_dgpt`` (Liu et al., FUSION 2022): keys, types, ranges and cross-field rules.
 
 Linked from ``conf/task/liu_dgpt.yaml`` (``/schema/task/liu_dgpt@_here_``), so Hydra refuses an
-unknown ``task.*`` key or a wrong type at composition. The values themselves live in the YAML
-files (every field here is mandatory, ``???``): the task file (with the S1-S3 generators,
-``task.scenario_params.s1..s3``: ``_target_`` + ``_partial_`` + parameters), and the group options
-``conf/tracker/``, ``conf/aggregation/``, ``conf/gp_input/`` (``# @package task``: they write
-``task.tracker`` / ``task.aggregations`` / ``task.centralised`` / ``task.gp_input``).
+unknown ``task.*`` key or a wrong type at composition. The values themselves live in the task file
+(every field here is mandatory, ``???``), with the S1-S3 generators (``task.scenario_params.s1..s3``:
+``_target_`` + ``_partial_`` + parameters). A cell of the grid is chosen with the task's own keys:
+``task.tracker``, ``task.aggregations``, ``task.gp_input``, ``task.scenarios``, ``task.noises``; of the
+root groups the study reads only ``scenario``, and only a Liu scenario option (``scenario=s1|s2|s3``,
+:func:`selected_scenario`).
 
-:func:`check` holds what a schema cannot state: the hyperparameter box, duplicates, the tracker
-vs. aggregation rules and the top-level ``noise`` value (``conf/liu_keys/default.yaml``).
+:func:`check` holds what a schema cannot state: the hyperparameter box, duplicates and the tracker
+vs. aggregation rules; :func:`unused` names the task keys a tracker does not read.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import List, Optional
 
-from omegaconf import MISSING, DictConfig, ListConfig
+from omegaconf import MISSING, DictConfig
 
 from dslearn.errors import ConfigError
 from dslearn.filters.dgpt import GP_INPUTS, OPTIMISERS
@@ -110,7 +110,7 @@ class LiuDgpt:
     entry: str = MISSING
     name: str = MISSING
     gp_input: str = ranged(MISSING, choices=GP_INPUTS)
-    tracker: Optional[str] = ranged(None, choices=TRACKERS)  # null = the rules + the standard GP
+    tracker: Optional[str] = ranged(None, choices=TRACKERS)  # null = the rules (+ the standard GP if centralised)
     scenarios: List[str] = ranged(MISSING, each=True, choices=SCENARIOS, min_len=1)
     noises: List[float] = ranged(MISSING, each=True, min_len=1, **_POS)
     aggregations: List[str] = ranged(MISSING, each=True, choices=AGGREGATIONS)
@@ -147,14 +147,6 @@ def selected_scenario(cfg: DictConfig) -> str | None:
     return None
 
 
-def _plain_noise(v):
-    if isinstance(v, (int, float)) and not isinstance(v, bool):
-        return [v]
-    if isinstance(v, (ListConfig, list, tuple)):
-        return list(v)
-    raise ConfigError(f"noise={v!r} must be a number > 0 (e.g. noise=2) or a list of them")
-
-
 def check(cfg: DictConfig) -> None:
     """Cross-field rules of ``liu_dgpt`` (ranges and types are the schema's)."""
     t = cfg.task
@@ -170,28 +162,46 @@ def check(cfg: DictConfig) -> None:
         vals = list(t[key])
         if len(set(vals)) != len(vals):
             raise ConfigError(f"task.{key}={vals} has duplicates")
-    aggs = list(t.aggregations)
-    if t.tracker == "gp":
-        if aggs:
-            raise ConfigError(f"tracker=gp (the centralised standard GP) takes no aggregation; got "
-                              f"task.aggregations={aggs}: use tracker=dgpt aggregation={aggs[0]}")
-        if not t.centralised:
-            raise ConfigError("tracker=gp runs the centralised standard GP: task.centralised must be true")
-    elif not aggs:
+    if t.tracker != "gp" and not list(t.aggregations):
         raise ConfigError(f"task.aggregations must not be empty; choose from {list(AGGREGATIONS)} "
-                          f"(tracker=gp runs the standard GP alone)")
-    if t.tracker == "dgpt" and t.centralised:
-        raise ConfigError("tracker=dgpt runs the aggregation rule(s) only: task.centralised must be false "
-                          "(unset tracker to run both)")
-    nz = cfg.get("noise")
-    if nz is not None:
-        vals = _plain_noise(nz)
-        if not vals:
-            raise ConfigError("noise must not be empty")
-        for i, n in enumerate(vals):
-            name = "noise" if len(vals) == 1 else f"noise[{i}]"
-            if isinstance(n, bool) or not isinstance(n, (int, float)) or not math.isfinite(n) or n <= 0:
-                raise ConfigError(f"{name}={n!r} must be a number > 0")
+                          f"(task.tracker=gp runs the standard GP alone)")
 
 
-register_task("liu_dgpt", LiuDgpt, check)
+def methods(t) -> tuple[list[str], bool]:
+    """The aggregation rules the study runs and whether it runs the centralised standard GP:
+    ``task.tracker`` null = ``task.aggregations`` (+ the standard GP if ``task.centralised``),
+    ``dgpt`` = ``task.aggregations`` alone, ``gp`` = the standard GP alone."""
+    if t.tracker == "gp":
+        return [], True
+    return [str(a) for a in t.aggregations], t.tracker is None and bool(t.centralised)
+
+
+def unused(cfg: DictConfig) -> dict[str, str]:
+    """The task keys the chosen ``task.tracker`` does not read (an override of them is refused)."""
+    tr = cfg.task.get("tracker")
+    if tr == "gp":
+        why = "with task.tracker=gp (the centralised standard GP alone)"
+        return {"task.aggregations": why, "task.centralised": why}
+    if tr == "dgpt":
+        return {"task.centralised": "with task.tracker=dgpt (the aggregation rules alone)"}
+    return {}
+
+
+def uses(cfg: DictConfig) -> tuple[str, ...]:
+    """Of the root groups, the study reads ``scenario`` when it is a Liu scenario option (s1-s3)."""
+    return ("scenario",) if selected_scenario(cfg) is not None else ()
+
+
+#: what the study uses in place of each root group (all its parts are in ``task``)
+INSTEAD = {
+    "scenario": "its scenarios are task.scenarios with task.scenario_params; of the root group it takes "
+                "only a Liu scenario, scenario=s1|s2|s3",
+    "network": "its sensors are task.num_sensors, task.sensing_range and task.area_size",
+    "model": "its motion model is the tracker's GP over task.gp_input, with task.hyper",
+    "observation": "its sensors measure positions with the noise levels task.noises",
+    "consensus": "its fusion is task.aggregations",
+    "filter": "its tracker is task.tracker, with task.window and task.hyper",
+    "data": "its Monte Carlo runs are task.mc_runs",
+}
+
+register_task("liu_dgpt", LiuDgpt, check, uses=uses, instead=INSTEAD, unused=unused)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dslearn.schemas.base import register_task
+from dslearn.schemas.base import ROOT_GROUPS, register_task
 
 
 @dataclass
@@ -15,4 +15,4 @@ class YuTask:
     name: str = "yu"
 
 
-register_task("yu", YuTask)
+register_task("yu", YuTask, uses=ROOT_GROUPS)  # every root group: they are its parts

@@ -54,4 +54,14 @@ def check(cfg: DictConfig) -> None:
                           "(omega = number of nodes) in task.fusions instead")
 
 
-register_task("yu_faults", FaultTask, check)
+#: the root groups the study reads (:mod:`dslearn.studies.yu_faults`): the scenario, the network, the
+#: observation model and the filter as the Yu study; of ``consensus`` only the number of rounds
+USES = ("scenario", "network", "observation", "filter", "consensus.iterations")
+INSTEAD = {
+    "model": "its motion models are task.models, options of conf/model/",
+    "consensus": "its fusions are task.fusions, each composed from its own conf/consensus/<name>.yaml, "
+                 "with the weights task.weights recomputed on the live graph",
+    "data": "its episodes are task.train_episodes and task.test_episodes",
+}
+
+register_task("yu_faults", FaultTask, check, uses=USES, instead=INSTEAD)

@@ -3,8 +3,8 @@
 The protocol only: ``run(cfg)`` runs the grid (scenarios x noise levels x Monte Carlo runs, the
 aggregation rules + the centralised standard GP) for one input type (``task.gp_input``) and
 returns a tidy DataFrame. The configuration arrives checked (:mod:`dslearn.schemas.liu_dgpt`);
-the groups ``tracker`` / ``aggregation`` / ``gp_input`` have already written their choice into
-``task`` (``# @package task``), the scenario generators are instantiated from
+the methods, inputs and noise levels are the task's keys (``task.tracker``, ``task.aggregations``,
+``task.gp_input``, ``task.noises``), the scenario generators are instantiated from
 ``task.scenario_params`` (``_target_``, ``_partial_``). Tracker: :mod:`dslearn.filters.dgpt`;
 trajectories and measurements: :mod:`dslearn.sim.manoeuvres`; tables and figures:
 :mod:`dslearn.reports.liu_dgpt`.
@@ -25,29 +25,28 @@ from dslearn.compose import build
 from dslearn.filters.dgpt import HyperConfig, hyper_summary, track
 from dslearn.schemas.base import to_plain
 from dslearn.types import DTYPES
-from dslearn.schemas.liu_dgpt import selected_scenario
+from dslearn.schemas.liu_dgpt import methods, selected_scenario
 from dslearn.sim.manoeuvres import SCENARIOS, measure, sensor_field
 
 TASK = "liu_dgpt"
 
 
 def plan(cfg) -> dict:
-    """The run's parameters from a checked config. The top-level cell selection narrows the task's
-    lists: ``scenario=s1|s2|s3`` -> that scenario, ``noise=<sigma>`` (``conf/liu_keys``) -> those
-    noise levels. A single-cell run traces (Figs 5-6) its own cell when ``task.trace``'s is not in it."""
+    """The run's parameters from a checked config. The root ``scenario=s1|s2|s3`` narrows
+    ``task.scenarios`` to that scenario; the methods are those of ``task.tracker``
+    (:func:`~dslearn.schemas.liu_dgpt.methods`). A single-cell run traces (Figs 5-6) its own cell
+    when ``task.trace``'s is not in it."""
     t = cfg.task
     sel = selected_scenario(cfg)
     scenarios = [sel] if sel is not None else [str(s) for s in t.scenarios]
-    nz = cfg.get("noise")
-    nz = t.noises if nz is None else (nz if isinstance(to_plain(nz), list) else [nz])
-    noises = [float(n) for n in nz]
+    noises = [float(n) for n in t.noises]
+    aggregations, centralised = methods(t)
     trace = {"scenario": str(t.trace.scenario), "noise": float(t.trace.noise), "episodes": int(t.trace.episodes)}
     if trace["scenario"] not in scenarios or not any(math.isclose(trace["noise"], n) for n in noises):
         trace["scenario"], trace["noise"] = scenarios[0], noises[0]
     p = {k: t[k] for k in ("gp_input", "mc_runs", "batch_runs", "num_sensors", "num_steps", "sensing_range",
-                           "area_size", "dt", "ucb_delta", "normalise_beta", "grbcm_comm_points",
-                           "centralised", "torch_threads")}
-    p.update(scenarios=scenarios, noises=noises, aggregations=[str(a) for a in t.aggregations], trace=trace,
+                           "area_size", "dt", "ucb_delta", "normalise_beta", "grbcm_comm_points", "torch_threads")}
+    p.update(scenarios=scenarios, noises=noises, aggregations=aggregations, centralised=centralised, trace=trace,
              window={s: int(t.window[s]) for s in scenarios}, hyper=HyperConfig(**to_plain(t.hyper)),
              generators={s: build(t.scenario_params[s], f"task.scenario_params.{s}") for s in scenarios})
     return p
