@@ -541,7 +541,9 @@ BUILD_CASES = [
 @pytest.mark.parametrize("overrides,expected", BUILD_CASES, ids=lambda v: str(v)[:48])
 def test_constructor_refusals_come_before_the_run(tmp_path, overrides, expected):
     run = tmp_path / "run"
-    code, out, err = cli([*overrides, "data.train_episodes=1", "data.test_episodes=1", f"hydra.run.dir={run}"])
+    # the run's size: task=yu_faults takes its episodes from task.* (it refuses the root data group)
+    size = "task" if "experiment=yu_faults" in overrides else "data"
+    code, out, err = cli([*overrides, f"{size}.train_episodes=1", f"{size}.test_episodes=1", f"hydra.run.dir={run}"])
     assert_refused(code, out, err, "dslearn-run: configuration error: " + expected)
     assert not run.exists()  # refused by the start-up check: no run folder, no run.log
 

@@ -40,10 +40,10 @@ def test_every_group_has_options():
 # ----------------------------------------------------------------- what every option sets and builds
 S = 10  # nodes of the default layout: 4 sensors + 6 communication-only
 CPU, F64 = torch.device("cpu"), torch.float64
-LIU = ["experiment=liu_table1"]  # the study whose groups (aggregation, tracker, gp_input, s1-s3) write into task
+LIU = ["experiment=liu_table1"]  # the study whose scenario options s1-s3 narrow task.scenarios
 
 # The context an option is composed in: the default study unless the group belongs to another study.
-CONTEXT = {"aggregation": LIU, "tracker": LIU, "gp_input": LIU, "liu_keys": LIU}
+CONTEXT: dict[str, list[str]] = {}
 PLUS = {"dataset", "folds", "lstm"}  # groups outside the root defaults ('+group=option')
 
 
@@ -64,29 +64,6 @@ def _plan(cfg):
 
     validate_task(cfg)
     return liu_dgpt.plan(cfg)
-
-
-def _check_aggregation(option, cfg, world):  # one rule of Liu et al., beside the centralised standard GP
-    assert list(cfg.task.aggregations) == [option]
-    p = _plan(cfg)
-    assert p["aggregations"] == [option] and p["centralised"] is True
-
-
-def _check_tracker(option, cfg, world):  # dgpt: the aggregation rules only; gp: the standard GP only
-    p = _plan(cfg)
-    assert cfg.task.tracker == option
-    if option == "dgpt":
-        assert p["aggregations"] == ["poe", "gpoe", "bcm", "rbcm", "grbcm"] and p["centralised"] is False
-    else:
-        assert p["aggregations"] == [] and p["centralised"] is True
-
-
-def _check_gp_input(option, cfg, world):
-    assert cfg.task.gp_input == option and _plan(cfg)["gp_input"] == option
-
-
-def _check_liu_keys(option, cfg, world):  # a top-level `noise`, null: the task's full list of noises
-    assert "noise" in cfg and cfg.noise is None and _plan(cfg)["noises"] == [1.0, 2.0, 4.0]
 
 
 def _check_data(option, cfg, world):  # Yu et al. V-D: 200 + 50 episodes; small: 30 + 20
@@ -132,10 +109,9 @@ def _check_lstm(option, cfg, world):
     want = dict(embed=64, hidden=64, obs_len=2, pred_len=10, schedule="fixed", epochs=50, batch_size=8, lr=1e-3,
                 pooling="none")
     assert {k: node[k] for k in want} == want
-    copy = _compose("task=ethucy_tracking").task.lstm
-    # the copy drops the filter's noise_std and adds the held-out share of early stopping; the rest is equal
-    assert set(node) - set(copy) == {"noise_std"} and set(copy) - set(node) == {"val_fraction"}
-    assert {k: node[k] for k in copy if k in node} == {k: copy[k] for k in copy if k in node}
+    option = _compose("model=lstm").model  # the motion-model option (Yu study, real-data tracking) agrees key by key
+    assert set(option) - set(node) == {"_target_", "_partial_", "name", "val_fraction", "process_noise", "train_on"}
+    assert set(node) <= set(option) and {k: option[k] for k in node} == dict(node)
 
 
 TASKS = {"braga_tbn": "BragaTask", "ethucy_forecast": "EthucyForecastTask", "ethucy_tracking": "EthucyTrackingTask",
@@ -179,11 +155,35 @@ def _check_model(option, cfg, world):
     from dslearn.models.aggregated import AggregatedGPMotion
 
     _, scenario, network = world
-    assert cfg.model.name == option  # gp_rbcm / gp_increment_rbcm: the label names the rule
+    assert cfg.model.name == option or option == "gp_cv"  # gp_rbcm / gp_increment_rbcm: the label names the rule
     m = build_motion_model(cfg.model, scenario, network, F64, CPU)
     assert m.state_dim == 8  # 2 agents x (position, velocity)
     if option == "lin":  # the paper's LIN: Q = 0.1^2 I
         assert type(m) is ConstantVelocity and m.noise_std == 0.1
+        return
+    if option == "gp_cv":  # the increment GP's keys with the constant-velocity prior mean at the scenario's dt
+        assert type(m) is GPMotionModel and cfg.model.name == "gp_increment_cv" and (m.variant, m.noise_mode) == ("exact", "latent")
+        assert m.gp.mean_type == "constant_velocity" and m.gp.num_nodes == S
+        x = torch.randn(S, 3, 8, dtype=F64, generator=torch.Generator().manual_seed(4))
+        torch.testing.assert_close(m(x, scenario.ctx()), x @ ConstantVelocity(2).matrix(0.25).T)  # no data: the CV step
+        return
+    if option == "sfm_fit":  # the social force whose (tau, alpha, beta) a fit sets; before it (1, 0, 1), v* = 0
+        from dslearn.learning.sfm_fit import FittedSocialForce
+
+        assert type(m) is FittedSocialForce and m.learns_offline and m.train_on == "truth" and m.noise_std == 0.1
+        assert m.params() == {"tau": 1.0, "alpha": 0.0, "beta": 1.0} and m.fit_settings["refine_iters"] == 150
+        assert m.fit_settings["tau_grid"] == (0.25, 0.5, 1.0, 2.0, 4.0, 8.0) and m.fit_settings["desired_steps"] == 1
+        return
+    if option in ("lstm", "social_lstm"):  # the paper's VI-C network, sized by the scenario, trained offline
+        from dslearn.models.lstm import SocialLSTM
+
+        assert type(m) is SocialLSTM and m.learns_offline and not m.learnable
+        assert (m.num_agents, m.dt, m.obs_len, m.pred_len, m.embed, m.hidden) == (2, 0.25, 2, 10, 64, 64)
+        assert m.pooling == {"lstm": "none", "social_lstm": "social"}[option] and (m.grid, m.neighbourhood) == (4, 2.0)
+        assert {k: m.offline[k] for k in ("schedule", "epochs", "batch_size", "lr", "process_noise", "train_on")} == {
+            "schedule": "fixed", "epochs": 50, "batch_size": 8, "lr": 1e-3, "process_noise": "residuals", "train_on": None}
+        x = torch.zeros(1, 8, dtype=F64)
+        torch.testing.assert_close(m.noise_cov(x, scenario.ctx())[0], 0.01 * torch.eye(8, dtype=F64))  # before a fit
         return
     if option == "sfm":  # the true model with the simulation's parameters (scenario yu_two_agents)
         assert type(m) is SocialForce and m.noise_std == 0.001
@@ -268,15 +268,12 @@ def _check_scenario(option, cfg, world):
     assert _plan(cfg)["scenarios"] == [option]
 
 
-CHECKS = {"aggregation": _check_aggregation, "tracker": _check_tracker, "gp_input": _check_gp_input,
-          "liu_keys": _check_liu_keys, "data": _check_data, "dataset": _check_dataset, "folds": _check_folds,
+CHECKS = {"data": _check_data, "dataset": _check_dataset, "folds": _check_folds,
           "lstm": _check_lstm, "task": _check_task, "filter": _check_filter, "model": _check_model,
           "observation": _check_observation, "consensus": _check_consensus, "network": _check_network,
           "scenario": _check_scenario}
-EXPECTED_OPTIONS = {"aggregation": {"bcm", "gpoe", "grbcm", "poe", "rbcm"},
-                    "tracker": {"dgpt", "gp"}, "gp_input": {"temporal", "spatiotemporal"}, "liu_keys": {"default"},
-                    "data": {"paper", "small"}, "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
-                    "task": set(TASKS), "filter": {"default", "ukf"}, "model": set(GP_MODELS) | {"lin", "sfm"},
+EXPECTED_OPTIONS = {"data": {"paper", "small"}, "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
+                    "task": set(TASKS), "filter": {"default", "ukf"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
                     "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES),
                     "network": {"yu", "yu_blind"}, "scenario": {"s1", "s2", "s3", "yu_two_agents"}}
 

@@ -168,8 +168,8 @@ def test_both_real_data_studies_run_on_a_new_data_set(tmp_path):
     # tracking (Tables III-IV analogue) on the same data set
     res, out = _run_and_report(
         tmp_path, "tracking", "experiment=real_tables", "task.scenes=[walkers]", "task.train_episodes=3",
-        "task.test_episodes=2", "task.plot_episodes=1", "task.models=[gp,lin,sfm]", "task.sfm.refine_iters=2",
-        "task.sfm.grid.tau=[1.0]", "task.sfm.grid.alpha=[0.0,1.0]", "task.sfm.grid.beta=[1.0]")
+        "task.test_episodes=2", "task.plot_episodes=1", "task.models=[gp,lin,sfm]", "+task.model_keys.sfm.refine_iters=2",
+        "+task.model_keys.sfm.tau_grid=[1.0]", "+task.model_keys.sfm.alpha_grid=[0.0,1.0]", "+task.model_keys.sfm.beta_grid=[1.0]")
     sens = res[res.node_kind == "sensor"]
     assert set(res.scene) == {"walkers"} and {"track_err", "pred_err"} <= set(sens.metric)
     assert sens.value.map(math.isfinite).all() and len(sens) > 0

@@ -184,27 +184,38 @@ def test_sfm_fit_recovers_known_parameters():
 # end to end
 # ---------------------------------------------------------------------------------------------
 def _flat(d: dict, prefix: str = "task.") -> list[str]:
-    """``{"network": {"k_nearest": 0}}`` -> ``["task.network.k_nearest=0"]`` (Hydra overrides)."""
+    """``{"network": {"k_nearest": 0}}`` -> ``["task.network.k_nearest=0"]`` (Hydra overrides; the keys of
+    ``task.model_keys``, a mapping with no keys of its own, are added: ``+task.model_keys.lstm.epochs=2``)."""
     out = []
     for k, v in d.items():
+        plus = "+" if prefix.startswith("task.model_keys.") and not prefix.startswith("+") else ""
         if isinstance(v, dict):
             out += _flat(v, f"{prefix}{k}.")
         elif isinstance(v, (list, tuple)):
-            out.append(f"{prefix}{k}=[" + ",".join(str(x) for x in v) + "]")
+            out.append(f"{plus}{prefix}{k}=[" + ",".join(str(x) for x in v) + "]")
         else:
-            out.append(f"{prefix}{k}={'null' if v is None else v}")
+            out.append(f"{plus}{prefix}{k}={'null' if v is None else v}")
     return out
 
 
-SMALL = {"train_episodes": 4, "test_episodes": 3, "plot_episodes": 2, "lstm": {"epochs": 2},
-         "sfm": {"refine_iters": 3, "grid": {"tau": [0.5, 2.0], "alpha": [0.0, 1.0], "beta": [1.0]}}}
+SMALL = {"train_episodes": 4, "test_episodes": 3, "plot_episodes": 2}
+#: the keys of the small run's model options (task.model_keys), for the entries a run lists
+SMALL_KEYS = {"lstm": {"epochs": 2}, "social_lstm": {"epochs": 2},
+              "sfm_fit": {"refine_iters": 3, "tau_grid": [0.5, 2.0], "alpha_grid": [0.0, 1.0], "beta_grid": [1.0]}}
+SMALL_KEYS["sfm"] = SMALL_KEYS["sfm_fit"]
+DEFAULT_MODELS = ["gp", "gp_cv", "lin", "sfm_fit", "lstm"]  # conf/task/ethucy_tracking.yaml
 
 
 def compose_cfg(*groups, **task):
-    """The composed ``experiment=real_tables`` config (root group overrides in ``groups``)."""
+    """The composed ``experiment=real_tables`` config (root group overrides in ``groups``), with the small
+    run's model keys for the entries of ``task.models`` (``model_keys`` in ``task`` add to them)."""
+    models = task.get("models", DEFAULT_MODELS)
+    keys = {m: dict(SMALL_KEYS[m]) for m in models if m in SMALL_KEYS}
+    for m, k in task.pop("model_keys", {}).items():
+        keys[m] = {**keys.get(m, {}), **k}
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         return compose("config", overrides=["experiment=real_tables", "progress=false", "study=test", *groups,
-                                            *_flat(SMALL), *_flat(task)])
+                                            *_flat(SMALL), *_flat(task), *_flat({"model_keys": keys})])
 
 
 def tiny_cfg(*groups, **task):
@@ -222,13 +233,15 @@ def test_tables_end_to_end_on_a_real_scene(tmp_path):
         assert col in df.columns
     sens = df[df["node_kind"] == "sensor"]
     got = set(zip(sens["model"], sens["metric"]))
-    for m in ("gp_increment", "gp_increment_cv", "lin", "sfm"):
+    for m in ("gp_increment", "gp_increment_cv", "lin", "sfm_fit", "lstm"):  # every model tracks and predicts
         assert {(m, "track_err"), (m, "pred_err")} <= got
-    assert ("lstm", "pred_err") in got and ("lstm", "track_err") not in got
     assert sens["value"].notna().all() and (sens["value"] >= 0).all()
     assert (sens["train_episodes"] == 4).all() and len(sens[(sens.model == "lin") & (sens.metric == "pred_err")]) == 4 * 3
+    params = df[df.node_kind == "param"].set_index("metric")["value"]
+    assert {"sfm_fit_tau", "sfm_fit_alpha", "sfm_fit_beta", "sfm_fit_fit_loss", "lstm_train_loss", "lstm_q_pos_std",
+            "lstm_q_vel_std"} <= set(params.index)
     traj = df[df["metric"].isin(["pred_x", "pred_y"])]
-    assert set(traj["model"]) == {"truth", "gp_increment", "gp_increment_cv", "lin", "sfm", "lstm"}
+    assert set(traj["model"]) == {"truth", "gp_increment", "gp_increment_cv", "lin", "sfm_fit", "lstm"}
     assert set(traj["episode"]) == {0, 1} and set(traj["step"]) == set(range(12))
     # LIN's first predicted step equals the truth at t=1 (v0 is the forward difference)
     piv = traj.pivot_table(index=["model", "episode", "agent", "step"], columns="metric", values="value")
@@ -280,13 +293,14 @@ def test_learned_filters_stay_on_the_track_of_the_worst_eth_episodes():
             assert torch.isfinite(res.mean).all()
             return tracking_metrics(res, test.states)["track_err"].mean(0)  # (B,): sensor average
 
-        lin = err(et.learner(cfg, ConstantVelocity(2, float(cfg.task.lin.noise_std)), data, fusion))
-        for cv in ((False, True) if group == "gp_increment" else (False,)):
-            prior = err(et.learner(cfg, et._gp(cfg, data, f64, cpu, cv), data, fusion))
-            alg = et.learner(cfg, et._gp(cfg, data, f64, cpu, cv), data, fusion)
+        lin = err(et.learner(cfg, ConstantVelocity(2, 0.1), data, fusion))
+        gps = {label: spec for name, label, spec in et.model_entries(cfg) if name in ("gp", "gp_cv")}
+        for label, spec in gps.items() if group == "gp_increment" else [(group, gps[group])]:
+            prior = err(et.learner(cfg, et.build_model(spec, data, f64, cpu), data, fusion))
+            alg = et.learner(cfg, et.build_model(spec, data, f64, cpu), data, fusion)
             et.train_online(alg, data, 32)
-            assert alg.model.gp.n == 32 * 11
-            runs[et._gp_name(cfg, cv)] = (err(alg), prior, lin)
+            assert alg.model.gp.n == 32 * 11 and alg.model.inputs == "belief"
+            runs[label] = (err(alg), prior, lin)
     for name, (learned, prior, lin) in runs.items():
         assert (learned <= 1.2 * prior).all(), (name, learned, prior)
         if name != "gp":  # the zero-mean GP's prior is the origin: 3-15x LIN on ETH, whatever it learns
@@ -295,7 +309,8 @@ def test_learned_filters_stay_on_the_track_of_the_worst_eth_episodes():
 
 
 def test_data_size_end_to_end_on_synthetic(tmp_path):
-    cfg = tiny_cfg(protocol="data_size", scenes=[], synthetic=True, data_sizes=[2, 4], seeds=2, plot_episodes=0)
+    cfg = tiny_cfg(protocol="data_size", scenes=[], synthetic=True, data_sizes=[2, 4], seeds=2, plot_episodes=0,
+                   models=["gp", "gp_cv", "lstm"])
     df = et.run(cfg)
     sens = df[(df["node_kind"] == "sensor") & (df["metric"] == "pred_err")]
     assert set(sens["model"]) == {"gp_increment", "gp_increment_cv", "lstm"}
@@ -318,18 +333,22 @@ def test_data_size_end_to_end_on_synthetic(tmp_path):
         ({"split": "sideways"}, "task.split"),
         ({"network": {"sensing_range": 0}}, "task.network.sensing_range"),
         ({"network": {"k_nearest": 0}}, "task.network.k_nearest"),
-        ({"sfm": {"fit_on": "oracle"}}, "task.sfm.fit_on"),
-        ({"sfm": {"grid": {"tau": [0.5, -1.0]}}}, r"task.sfm.grid.tau\[1\]"),
-        ({"sfm": {"desired_steps": 13}}, "task.sfm.desired_steps"),
-        ({"lstm": {"pooling": "max"}}, "task.lstm.pooling"),
-        ({"lstm": {"pred_len": 20}}, "task.lstm.obs_len"),
-        ({"lstm": {"schedule": "sometimes"}}, "task.lstm.schedule"),
+        ({"model_keys": {"sfm_fit": {"train_on": "oracle"}}}, "entry 'sfm_fit': model.train_on"),
+        ({"model_keys": {"sfm_fit": {"tau_grid": [0.5, -1.0]}}}, r"model.tau_grid\[1\]"),
+        ({"model_keys": {"sfm_fit": {"desired_steps": 13}}}, "model.desired_steps"),
+        ({"model_keys": {"sfm_fit": {"fit_on": "truth"}}}, r"unknown key\(s\) \['fit_on'\]"),
+        ({"model_keys": {"lstm": {"pooling": "max"}}}, "entry 'lstm': model.pooling"),
+        ({"model_keys": {"lstm": {"pred_len": 20}}}, "model.pred_len"),
+        ({"model_keys": {"lstm": {"schedule": "sometimes"}}}, "model.schedule"),
+        ({"models": ["lin"], "model_keys": {"lstm": {"epochs": 3}}}, "task.model_keys.lstm"),
         ({"models": ["mlp"]}, "task.models"),
+        ({"models": ["lin", "lin"]}, "task.models"),
+        ({"models": ["lstm"], "train_episodes": 1}, "task.train_episodes gives 1"),  # residual Q holds one out
+        ({"train_on": "oracle"}, "task.train_on"),
         ({"test_fraction": 1.5}, "task.test_fraction"),
         ({"scenes": ["mars"]}, "task.scenes"),
         ({"criterion": "nearest"}, "task.criterion"),
-        ({"protocol": "data_size", "models": ["gp", "lin"]}, "task.models"),
-        ({"protocol": "data_size", "models": ["lin", "lstm"]}, "task.models"),
+        ({"protocol": "data_size", "data_sizes": [1, 4]}, "task.data_sizes gives 1"),
         ({"protocol": "data_size", "data_sizes": [0]}, "task.data_sizes"),
         ({"datasets": {"zara1": {"frame_step": 0}}}, "task.datasets.zara1.frame_step"),
         ({"gp_inputs": "sigma_points"}, "task.gp_inputs"),
@@ -350,9 +369,12 @@ def test_unknown_keys_and_wrong_types_fail_at_composition():
 def test_bad_root_groups_are_clear_errors():
     with pytest.raises(ConfigError, match=r"consensus\.name"):
         tiny_cfg("consensus=centralized")
-    with pytest.raises(ConfigError, match=r"model\._target_=.*model=lin"):
-        tiny_cfg("model=lin")
-    tiny_cfg("model=lin", models=["lin", "sfm"])  # no GP asked for: any model group is fine
+    with pytest.raises(ConfigError, match=r"two entries the same label \['lin', 'gp_increment_cv', 'lin'"):
+        tiny_cfg("model=lin")  # the root model (entry gp) is LIN, and so is the entry lin
+    tiny_cfg("model=lin", models=["gp", "sfm"])  # the root model may be any model that runs on real data
+    tiny_cfg("model=sfm", models=["lin", "sfm"])  # not listed (no gp entry): the root model is not read
+    with pytest.raises(ConfigError, match=r"entry 'gp' \(the root model group\): model\._target_=.*SocialForce.*sfm_fit"):
+        tiny_cfg("model=sfm", models=["gp"])  # the true social force: parameters of the simulation
     # the belief average exists for the exact and window GPs only (closed-form Jacobian)
     for group in ("model=gp_sgpr", "model=gp_ssgp", "model.jacobian=autograd"):
         with pytest.raises(ConfigError, match=r"task\.gp_inputs=belief.*task\.gp_inputs=mean"):
@@ -411,7 +433,99 @@ def test_lstm_early_stopping_holds_out_whole_episodes():
     va_set = {tuple(w.flatten().tolist()) for w in va}
     assert not va_set & {tuple(w.flatten().tolist()) for w in tr}
     cfg = tiny_cfg(protocol="data_size", scenes=[], synthetic=True, data_sizes=[4], seeds=1, plot_episodes=0,
-                   lstm={"schedule": "early_stopping", "epochs": 3, "patience": 1})
+                   models=["gp", "gp_cv", "lstm"], model_keys={"lstm": {"schedule": "early_stopping", "epochs": 3, "patience": 1}})
     df = et.run(cfg)
     assert set(df[df["metric"] == "pred_err"]["model"]) == {"gp_increment", "gp_increment_cv", "lstm"}
 
+
+
+# ---------------------------------------------------------------------------------------------
+# the models are model options; observation and filter are the root groups'
+# ---------------------------------------------------------------------------------------------
+def _rows(df, model, metric="track_err"):
+    r = df[(df.model == model) & (df.metric == metric) & (df.node_kind == "sensor")]
+    return r.sort_values(["node", "episode"])["value"].to_numpy()
+
+
+@pytest.fixture(scope="module")
+def zara1():
+    """A tiny zara1 source (4 training, 3 test episodes) and the small run's config."""
+    if not data_available():
+        pytest.skip("ETH/UCY data root missing")
+    cfg = tiny_cfg(scenes=["zara1"], models=["lin", "sfm", "lstm"])
+    torch.manual_seed(0)
+    return cfg, et.real_data(cfg, "zara1", 0, 4, torch.float64, torch.device("cpu"))
+
+
+def test_lin_sfm_lstm_rows_equal_the_recipes_built_by_hand(zara1):
+    """The entries lin, sfm (= sfm_fit, labelled sfm) and lstm, composed from their options and learned through
+    the offline hook, give the rows of the study's recipe built by hand from its parts: LIN with sigma 0.1 and
+    the linear sensors; the social force fitted on the true training tracks (fit_episode_social_force); the LSTM
+    trained on the CM-fused training tracks (train_lstm_model with the run's seed, the paper's fixed schedule)."""
+    from dslearn.learning.lstm import train_lstm_model
+    from dslearn.metrics import prediction_error, tracking_metrics
+    from dslearn.models import ConstantVelocity, LinearPositionObservation
+    from dslearn.learning.online import OnlineLearner
+
+    cfg, data = zara1
+    df = et.protocol_tables(cfg, data, 0, torch.float64, torch.device("cpu"))
+    fusion = et._fusion(cfg, data.network)
+
+    def by_hand(model, metric):
+        alg = OnlineLearner(data.network, model, LinearPositionObservation(data.network.meas_std), fusion, data.ctx,
+                            init=lambda ep: et._init(cfg, data, ep, fusion), learn_gate_std=2.0)
+        if metric == "pred_err":
+            err = prediction_error(model, data.test.states, data.network.num_nodes, data.ctx, per_node=False)
+        else:
+            err = tracking_metrics(alg.estimate(data.test.measurements), data.test.states)[metric]
+        return err[: data.network.num_sensors].cpu().numpy().ravel()  # (sensor, episode) as the rows are sorted
+
+    lin = ConstantVelocity(2, 0.1)
+    c = SimpleNamespace(desired_steps=1, grid=SimpleNamespace(tau=[0.5, 2.0], alpha=[0.0, 1.0], beta=[1.0]),
+                        refine_iters=3, refine_lr=0.05, noise_std=0.1)
+    sfm, params, loss = sfm_fit.fit_episode_social_force(data.train.states.cpu(), data.test.states, data.ctx.dt, c)
+    fused = et.cm_fused(cfg, data, data.train)
+    kw = {"embed": 64, "hidden": 64, "obs_len": 2, "pred_len": 10, "pooling": "none", "grid": 4, "neighbourhood": 2.0,
+          "schedule": "fixed", "epochs": 2, "batch_size": 8, "lr": 1e-3}
+    lstm, _ = train_lstm_model(kw, 2, data.ctx.dt, lstm_windows(fused, 2, 10), 0, torch.float64, torch.device("cpu"))
+    for label, model in (("lin", lin), ("sfm", sfm)):
+        for metric in ("track_err", "nees", "pred_err"):
+            np.testing.assert_array_equal(_rows(df, label, metric), by_hand(model, metric), err_msg=f"{label} {metric}")
+    np.testing.assert_array_equal(_rows(df, "lstm", "pred_err"), by_hand(lstm, "pred_err"))
+    p = df[df.node_kind == "param"].set_index("metric")["value"]
+    assert [p[f"sfm_{k}"] for k in ("tau", "alpha", "beta", "fit_loss")] == [*params.values(), loss]
+    # the LSTM is a motion model of the filter too: its tracking rows, with the Q it estimated
+    te = _rows(df, "lstm")
+    assert len(te) == 4 * 3 and np.isfinite(te).all() and p["lstm_q_pos_std"] > 0
+
+
+def test_observation_gp_is_used(zara1):
+    """observation=gp: every learner gets its own GP sensor model (the network's sensor noise), learned online
+    from the training episodes, so LIN's tracking rows move; with the linear sensors LIN learns nothing."""
+    from dslearn.models.observation import GPObservation, LinearPositionObservation
+
+    cfg, data = zara1
+    lin_cfg = tiny_cfg(scenes=["zara1"], models=["lin"])
+    gp_cfg = tiny_cfg("observation=gp", scenes=["zara1"], models=["lin"])
+    f64, cpu = torch.float64, torch.device("cpu")
+    fusion = et._fusion(cfg, data.network)
+    obs = et.learner(gp_cfg, None, data, fusion).obs
+    assert type(obs) is GPObservation and obs.gp.num_nodes == data.network.num_nodes
+    assert type(et.learner(lin_cfg, None, data, fusion).obs) is LinearPositionObservation
+    a = et.protocol_tables(lin_cfg, data, 0, f64, cpu)
+    b = et.protocol_tables(gp_cfg, data, 0, f64, cpu)
+    ta, tb = _rows(a, "lin"), _rows(b, "lin")
+    assert len(ta) == len(tb) == 12 and np.isfinite(tb).all()
+    assert np.abs(ta - tb).max() > 1e-3
+    np.testing.assert_array_equal(_rows(a, "lin", "pred_err"), _rows(b, "lin", "pred_err"))  # the roll-out: no sensor
+
+
+def test_filter_ukf_is_used(zara1):
+    """filter=ukf: the fitted social force's tracking rows move (sigma points through a nonlinear model); LIN's
+    stay equal to machine precision (for a linear model the unscented prediction is the Kalman prediction)."""
+    cfg, data = zara1
+    f64, cpu = torch.float64, torch.device("cpu")
+    a = et.protocol_tables(tiny_cfg(scenes=["zara1"], models=["lin", "sfm"]), data, 0, f64, cpu)
+    b = et.protocol_tables(tiny_cfg("filter=ukf", scenes=["zara1"], models=["lin", "sfm"]), data, 0, f64, cpu)
+    np.testing.assert_allclose(_rows(a, "lin"), _rows(b, "lin"), rtol=1e-9, atol=1e-12)
+    assert np.abs(_rows(a, "sfm") - _rows(b, "sfm")).max() > 1e-6

@@ -9,8 +9,7 @@ from torch import Tensor
 
 from dslearn.data.window_tensors import per_agent
 from dslearn.forecast import lstm_predict
-from dslearn.models.lstm import SocialLSTM, holdout_split, schedule_from_config, train_lstm
-from dslearn.types import POS, agents
+from dslearn.models.lstm import SocialLSTM, episode_windows, holdout_split, schedule_from_config, train_lstm
 
 #: the network keys of a ``task.lstm`` / ``lstm`` block (the rest is the schedule)
 NETWORK_KEYS = ("embed", "hidden", "obs_len", "pred_len", "pooling", "grid", "neighbourhood")
@@ -18,13 +17,9 @@ NETWORK_KEYS = ("embed", "hidden", "obs_len", "pred_len", "pooling", "grid", "ne
 
 def lstm_windows(fused: Tensor, obs_len: int, pred_len: int) -> tuple[Tensor, Tensor]:
     """Sliding windows of fused positions: ``(B, K+1, 4A) -> (N, obs_len + pred_len, A, 2)``, and
-    the episode each window was cut from, ``(N,)`` (a validation split holds out whole episodes)."""
-    pos = agents(fused)[..., POS]
-    w = obs_len + pred_len
-    k1 = pos.shape[1]
-    starts = range(0, k1 - w + 1)
-    groups = torch.arange(pos.shape[0]).repeat(len(starts))
-    return torch.cat([pos[:, s : s + w] for s in starts], 0), groups
+    the episode each window was cut from, ``(N,)`` (a validation split holds out whole episodes);
+    :func:`dslearn.models.lstm.episode_windows`, the windows of :meth:`SocialLSTM.fit_offline`."""
+    return episode_windows(fused, obs_len, pred_len)
 
 
 def train_lstm_model(c, num_agents: int, dt: float, windows: tuple[Tensor, Tensor], seed: int, dtype, device,

@@ -119,3 +119,70 @@ def fit_episode_social_force(train_states: Tensor, test_states: Tensor, dt: floa
     model = episode_social_force(test_states.shape[-1] // 4, noise_std=float(c.noise_std), **params)
     model.set_desired(desired_velocity(test_states, int(c.desired_steps)))
     return model, params, loss
+
+
+class FittedSocialForce(SocialForce):
+    r"""The social force model whose shared :math:`(\tau, \alpha, \beta)` are fitted offline
+    (``conf/model/sfm_fit.yaml``): :meth:`fit_offline` runs :func:`fit_social_force` on the
+    training trajectories (true tracks or the network's estimates, ``train_on``), and
+    :meth:`begin_episodes` sets each episode's desired velocities from the episodes about to be
+    tracked (:func:`desired_velocity`: the velocity at t = 0 with ``desired_steps = 1``, the state
+    every roll-out starts from). Before a fit: :math:`(\tau, \alpha, \beta) = (1, 0, 1)` and
+    desired velocities 0."""
+
+    learns_offline = True
+
+    @classmethod
+    def for_scenario(
+        cls,
+        noise_std: float = 0.1,
+        train_on: str | None = "truth",
+        desired_steps: int = 1,
+        tau_grid=(0.25, 0.5, 1.0, 2.0, 4.0, 8.0),
+        alpha_grid=(0.0, 0.5, 1.0, 2.0, 4.0, 8.0),
+        beta_grid=(0.25, 0.5, 1.0, 2.0, 4.0),
+        refine_iters: int = 150,
+        refine_lr: float = 0.05,
+        *,
+        scenario,
+        device=None,
+    ) -> "FittedSocialForce":
+        """The config factory: one agent block per agent of ``scenario``, the fit's settings
+        (:func:`fit_social_force`'s arguments). ConfigError naming ``model.<key>`` for a bad value."""
+        from dslearn.errors import ConfigError, check_choice, check_positive
+
+        if train_on is not None:
+            check_choice("model.train_on", train_on, ("truth", "fused"))
+        if isinstance(desired_steps, bool) or not isinstance(desired_steps, int) or desired_steps < 1:
+            raise ConfigError(f"model.desired_steps={desired_steps!r} must be an integer >= 1")
+        steps = getattr(scenario, "steps", None)
+        if steps is not None and desired_steps > int(steps) + 1:
+            raise ConfigError(f"model.desired_steps={desired_steps} must be <= the episodes' {int(steps) + 1} states")
+        for name, grid, positive in (("tau_grid", tau_grid, True), ("alpha_grid", alpha_grid, False),
+                                     ("beta_grid", beta_grid, True)):
+            if len(list(grid)) < 1:
+                raise ConfigError(f"model.{name} must list at least one value")
+            for i, v in enumerate(grid):
+                check_positive(f"model.{name}[{i}]", v, strict=positive)
+        if isinstance(refine_iters, bool) or not isinstance(refine_iters, int) or refine_iters < 0:
+            raise ConfigError(f"model.refine_iters={refine_iters!r} must be an integer >= 0")
+        check_positive("model.refine_lr", refine_lr)
+        model = cls([[0.0, 0.0]] * int(scenario.num_agents), 1.0, 0.0, 1.0, noise_std)
+        model.train_on = train_on
+        model.fit_settings = dict(desired_steps=int(desired_steps), tau_grid=tuple(float(v) for v in tau_grid),
+                                  alpha_grid=tuple(float(v) for v in alpha_grid),
+                                  beta_grid=tuple(float(v) for v in beta_grid), refine_iters=int(refine_iters),
+                                  refine_lr=float(refine_lr))
+        model.fit_info = {}
+        return model.to(device)
+
+    def fit_offline(self, trajectories: Tensor, dt: float, seed: int = 0) -> "FittedSocialForce":
+        """Fit :math:`(\\tau, \\alpha, \\beta)` to ``trajectories (B, K+1, 4A)`` (deterministic: ``seed``
+        is not used); ``fit_info`` = the parameters and the roll-out objective (``fit_loss``)."""
+        params, loss = fit_social_force(trajectories.detach().cpu(), dt, **self.fit_settings)
+        self.set_parameters(params["tau"], params["alpha"], params["beta"])
+        self.fit_info = {**params, "fit_loss": loss}
+        return self
+
+    def begin_episodes(self, states: Tensor) -> None:
+        self.set_desired(desired_velocity(states, self.fit_settings["desired_steps"]))

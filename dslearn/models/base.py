@@ -70,6 +70,24 @@ class MotionModel(nn.Module, abc.ABC):
         """Fit hyperparameters to the current data (marginal likelihood). No-op by default."""
         return self
 
+    # offline models -------------------------------------------------------------------
+    #: whether :meth:`fit_offline` learns (a model is learned online, :attr:`learnable` /
+    #: :meth:`add_data`, or offline, :meth:`fit_offline`, before the study tracks anything)
+    learns_offline: bool = False
+    #: what an offline model learns from: ``"truth"`` (the training episodes' true tracks),
+    #: ``"fused"`` (the tracks a sensor network estimated) or ``None`` (the study's default)
+    train_on: str | None = None
+
+    def fit_offline(self, trajectories: Tensor, dt: float, seed: int = 0) -> "MotionModel":
+        """Learn from whole training trajectories ``(B, K+1, Dx)`` (``dt`` seconds per step), once,
+        before any tracking; ``seed`` seeds whatever the fit draws. No-op by default."""
+        return self
+
+    def begin_episodes(self, states: Tensor) -> None:
+        """The episodes about to be tracked or rolled out, ``(B, K+1, Dx)``, for a model conditioned
+        per episode on what the protocol gives it (the fitted social force's desired velocities:
+        the velocity at t = 0, the state every roll-out starts from). No-op by default."""
+
     def save(self, path: str | Path) -> None:
         """Save parameters and data: ``torch.save`` of ``{format, class, state_dict}`` (plain tensors)."""
         torch.save(self._checkpoint(), path)

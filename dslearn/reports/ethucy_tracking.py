@@ -20,9 +20,10 @@ import pandas as pd  # noqa: E402
 from dslearn.io import atomic_write_csv, atomic_write_text  # noqa: E402
 from dslearn.reports.tables import save_figure  # noqa: E402
 
-ORDER = ["gp", "gp_increment", "gp_cv", "gp_increment_cv", "lin", "sfm", "lstm"]
+ORDER = ["gp", "gp_increment", "gp_cv", "gp_increment_cv", "lin", "sfm", "sfm_fit", "lstm", "social_lstm"]
 COLORS = {"truth": "black", "gp": "tab:blue", "gp_increment": "tab:blue", "gp_cv": "tab:cyan",
-          "gp_increment_cv": "tab:cyan", "lin": "tab:orange", "sfm": "tab:green", "lstm": "tab:purple"}
+          "gp_increment_cv": "tab:cyan", "lin": "tab:orange", "sfm": "tab:green", "sfm_fit": "tab:green",
+          "lstm": "tab:purple", "social_lstm": "tab:pink"}
 
 
 def _cell(m: float, s: float) -> str:

@@ -92,12 +92,32 @@ def arena_network(
         raise ConfigError(msg + "; raise task.network.k_nearest" if "disconnected" in msg else msg) from None
 
 
+@dataclass(frozen=True)
+class RealScenario:
+    """What a model option's factory (``_partial_``, :mod:`dslearn.compose`) needs of a data source
+    that is not simulated: the agents per episode (``num_agents``, the state ``[p, v]`` per agent),
+    the step ``dt``, the steps per episode ``steps`` (``K``: ``K + 1`` states) and the ``area``
+    ``(xmin, xmax, ymin, ymax)`` the targets move in."""
+
+    num_agents: int
+    dt: float
+    steps: int
+    area: tuple[float, float, float, float]
+
+    @property
+    def state_dim(self) -> int:
+        return 4 * self.num_agents
+
+    def ctx(self) -> StepContext:
+        return StepContext(dt=self.dt)
+
+
 @dataclass
 class Data:
     """One data source prepared for the protocol.
 
     ``train`` holds the training pool in the order online learning sees it; ``test`` the test
-    episodes. ``train_fused`` (filled later) are the CM-fused estimates of ``train``.
+    episodes. :attr:`scenario` is what a model option is sized by.
     """
 
     label: str  # scene name or "synthetic"
@@ -109,6 +129,12 @@ class Data:
     area: tuple[float, float, float, float]  # (xmin, xmax, ymin, ymax): where the diffuse prior puts the targets
     num_agents: int
     info: dict
+
+    @property
+    def scenario(self) -> RealScenario:
+        """The source as a scenario for the model options (:class:`RealScenario`)."""
+        return RealScenario(int(self.num_agents), float(self.ctx.dt), int(self.test.states.shape[1]) - 1,
+                            tuple(float(v) for v in self.area))
 
 
 def episodes_to(ep: Episodes, dtype, device) -> Episodes:

@@ -8,27 +8,29 @@ physical time; a scene is a data set of ``task.datasets``, ``conf/dataset/<name>
 split inside the scene, a LiDAR-like network around the scene
 (:mod:`dslearn.sim.real`), then
 
-* tracking error of the distributed EKF (``cfg.consensus``, hybrid by default) with the GP
-  (``cfg.model``, learned online through Algorithm 1 on the training episodes), the same GP
-  with a constant-velocity prior mean (``gp_cv``, :class:`~dslearn.learning.means.ConstantVelocityMean`), LIN and SFM;
-* prediction error (roll-out from the true state at t = 0, the paper's V-C protocol) of GP,
-  LIN, SFM and LSTM;
+* for every motion model of ``task.models`` (``conf/model`` options, composed as the faults
+  study's; ``gp`` = the root ``model`` group): tracking error of the distributed filter
+  (``cfg.consensus``, hybrid by default; the root ``filter`` group's prediction step, EKF or
+  ``filter=ukf``; the root ``observation`` group's sensor model, ``observation=gp`` learned
+  online too) and prediction error (roll-out from the true state at t = 0, the paper's V-C
+  protocol);
 * predicted trajectories of a few test episodes (rows ``pred_x``/``pred_y``) for the figure.
 
-``data_size`` (``dslearn-run experiment=gp_vs_lstm``) — Fig. 5 analogue: prediction error of the
-GP (learned online through the consensus EKF, evaluated after ``n`` training episodes) and of
-the LSTM (trained offline on the first ``n`` training episodes fused by consensus on
-measurements) for ``n`` in ``task.data_sizes``, ``task.seeds`` seeds, on the real scenes and
-on the synthetic Yu scenario (``cfg.scenario`` / ``cfg.network``).
+``data_size`` (``dslearn-run experiment=gp_vs_lstm``) — Fig. 5 analogue: the same rows after
+``n`` training episodes for ``n`` in ``task.data_sizes`` (online models learn through the consensus
+filter up to ``n``; offline models are fitted on the first ``n``), ``task.seeds`` seeds, on the real
+scenes and on the synthetic Yu scenario (``cfg.scenario`` / ``cfg.network``).
 
-SFM on real data (the true model is unknown): its shared :math:`(\tau, \alpha, \beta)` are
-fitted to the training episodes' roll-outs (:mod:`dslearn.learning.sfm_fit`).
-
-The LSTM (Social-LSTM encoder–decoder, :mod:`dslearn.learning.lstm`) is trained offline on the
-positions the network estimates when it tracks the training episodes with LIN and consensus
-on measurements (CM), the nodes' estimates combined by their information (:func:`cm_fused`)
-— the paper's VI-C recipe; one window of ``obs_len + pred_len`` states per episode (sliding
-if episodes are longer).
+A model learns online (``model.learnable``: the GPs, Algorithm 1 on the training episodes) or
+offline (``model.learns_offline``: :meth:`~dslearn.models.base.MotionModel.fit_offline` once on
+the training episodes' trajectories, before tracking): the SFM of real data (``sfm_fit``: the true
+model is unknown; its shared :math:`(\tau, \alpha, \beta)` are fitted to the training
+roll-outs, :mod:`dslearn.learning.sfm_fit`) and the LSTM (``lstm``, ``social_lstm``:
+:class:`~dslearn.models.lstm.SocialLSTM`). What an offline model learns from is its
+``train_on`` key, else ``task.train_on``: ``truth`` (the true tracks) or ``fused`` (default: the
+positions the network estimates when it tracks the training episodes with LIN and consensus on
+measurements (CM), the nodes' estimates combined by their information, :func:`cm_fused` — the
+paper's VI-C recipe). The study never decodes a model's name.
 """
 
 from __future__ import annotations
@@ -36,21 +38,19 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 import torch
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
-from dslearn.compose import build_fusion, build_motion_model, build_network, build_predict, build_scenario, resolve_dtype
+from dslearn.compose import (build_fusion, build_motion_model, build_network, build_observation, build_predict,
+                             build_scenario, group_options, resolve_dtype)
 from dslearn.data.datasets import load_dataset, task_datasets
 from dslearn.filters.distributed import initial_belief, track
 from dslearn.fusion.strategies import ConsensusOnMeasurements, Fusion
-from dslearn.learning.lstm import lstm_windows, train_lstm_model
 from dslearn.learning.online import OnlineLearner
-from dslearn.learning.sfm_fit import fit_episode_social_force
 from dslearn.metrics import metric_rows, prediction_error, tracking_metrics
 from dslearn.models import ConstantVelocity, LinearPositionObservation
 from dslearn.models.base import MotionModel
@@ -62,7 +62,19 @@ from dslearn.types import POS, agents, safe_cholesky
 log = logging.getLogger(__name__)
 
 TASK = "ethucy_tracking"
-
+#: names of ``task.models`` kept from before the entries were ``conf/model`` options: entry ->
+#: (the option, the label of its rows); option None = the root ``model`` group, labelled by its name
+ALIASES = {"gp": (None, None), "sfm": ("sfm_fit", "sfm")}
+GP_TARGET = "dslearn.models.gp.GPMotionModel.for_scenario"
+GP_CV_TARGET = "dslearn.learning.gp_cv.gp_cv_for_scenario"
+AGGREGATED_TARGET = "dslearn.models.aggregated.aggregated_for_scenario"
+#: the model factories that run on real data (sized by :class:`dslearn.sim.real.RealScenario`), and
+#: the GPs among them whose ``inputs`` ``task.gp_inputs`` sets
+REAL_TARGETS = (GP_TARGET, GP_CV_TARGET, AGGREGATED_TARGET, "dslearn.models.constant_velocity.ConstantVelocity.for_scenario",
+                "dslearn.learning.sfm_fit.FittedSocialForce.for_scenario", "dslearn.models.lstm.SocialLSTM.for_scenario")
+GP_INPUT_TARGETS = (GP_TARGET, GP_CV_TARGET)
+#: the observation group's default noise: the root network's sensors (here: the study's own network)
+NETWORK_NOISE = "${network.meas_std}"
 
 
 # data --------------------------------------------------------------------------------------
@@ -87,22 +99,65 @@ def _fusion(cfg: DictConfig, net: SensorNetwork) -> Fusion:
     return build_fusion(cfg.consensus, net)
 
 
-def _gp(cfg: DictConfig, data: Data, dtype, device, cv_mean: bool = False) -> MotionModel:
-    """The GP of ``cfg.model``; with ``cv_mean`` its prior mean is replaced by the CV step."""
-    stub = SimpleNamespace(num_agents=data.num_agents, state_dim=4 * data.num_agents)
-    node = cfg.model
-    if cv_mean:  # the same GP with the constant-velocity step as its prior mean (a mean module)
-        node = OmegaConf.merge(node, {"mean": {"_target_": "dslearn.learning.means.ConstantVelocityMean", "dt": float(data.ctx.dt)}})
-    if cfg.task.get("gp_inputs", "mean") != "mean":  # where the EKF evaluates the GP (GPMotionModel's `inputs`)
-        node = copy.deepcopy(node)
-        with open_dict(node):
-            node.inputs = str(cfg.task.gp_inputs)
-    model = build_motion_model(node, stub, data.network, dtype, device)
-    return model
+def model_entries(cfg: DictConfig) -> list[tuple[str, str, dict]]:
+    """``(entry, label, spec)`` of every ``task.models`` entry, in order: ``spec`` is the plain config
+    of its ``conf/model`` option (composed by :func:`dslearn.compose.group_options`; the legacy
+    names of :data:`ALIASES` map to an option or to the root ``model`` group), with the keys of
+    ``task.model_keys.<entry>`` replaced and, for the GPs that have it, ``inputs = task.gp_inputs``;
+    ``label`` (the rows' ``model``) is the option's ``name`` (an alias's own label where it has one)."""
+    t = cfg.task
+    names = [str(m) for m in t.models]
+    options = sorted({ALIASES.get(n, (n, None))[0] for n in names} - {None})
+    composed = _options(options)
+    extra = t.get("model_keys") or {}
+    out = []
+    for n in names:
+        option, label = ALIASES.get(n, (n, None))
+        spec = OmegaConf.to_container(cfg.model, resolve=True) if option is None else copy.deepcopy(composed[option])
+        if n in extra:
+            spec.update(OmegaConf.to_container(extra[n], resolve=True) if OmegaConf.is_config(extra[n]) else dict(extra[n]))
+        if str(t.get("gp_inputs", "mean")) != "mean" and spec.get("_target_") in GP_INPUT_TARGETS:
+            spec["inputs"] = str(t.gp_inputs)
+        out.append((n, str(label or spec.get("name", n)), spec))
+    return out
 
 
-def _gp_name(cfg, cv_mean: bool) -> str:
-    return f"{cfg.model.name}_cv" if cv_mean else str(cfg.model.name)
+_OPTIONS: dict[tuple, dict] = {}
+
+
+def _options(names: list[str]) -> dict[str, dict]:
+    """The plain configs of ``conf/model`` options (:func:`dslearn.compose.group_options`), memoised by
+    the config folders and the option: the up-front check of every job of a sweep and the run compose
+    the same options, and composing one costs ~0.3 s."""
+    from dslearn.conf_paths import CONF_DIRS
+
+    where = tuple(str(d) for d in CONF_DIRS)
+    todo = [n for n in names if (where, n) not in _OPTIONS]
+    if todo:
+        for n, node in group_options("model", todo).items():
+            _OPTIONS[(where, n)] = OmegaConf.to_container(node, resolve=True)
+    return {n: _OPTIONS[(where, n)] for n in names}
+
+
+def build_model(spec: dict, data: Data, dtype, device) -> MotionModel:
+    """The model of an entry's ``spec`` (:func:`model_entries`), sized by the data source's scenario
+    (:attr:`dslearn.sim.real.Data.scenario`) and network."""
+    return build_motion_model(spec, data.scenario, data.network, dtype, device)
+
+
+def observation_model(cfg: DictConfig, data: Data, dtype, device):
+    """The root ``observation`` group's sensor model for ``data``'s network; its noise, where the option
+    leaves it at the network's (``${network.meas_std}``), is this study's sensors' (``task.network.meas_std``)."""
+    raw = OmegaConf.to_container(cfg.observation, resolve=False)
+    spec = OmegaConf.to_container(cfg.observation, resolve=True)
+    if raw.get("noise_std") == NETWORK_NOISE:
+        spec["noise_std"] = float(data.network.meas_std)
+    return build_observation(spec, data.network, dtype, device)
+
+
+def offline_source(model: MotionModel, cfg: DictConfig) -> str:
+    """What an offline model learns from: its ``train_on``, else ``task.train_on``."""
+    return str(model.train_on or cfg.task.get("train_on", "fused"))
 
 
 def _init(cfg, data: Data, ep: Measurements, fusion: Fusion):
@@ -124,7 +179,7 @@ def cm_fused(cfg: DictConfig, data: Data, ep: Episodes) -> Tensor:
     net, c = data.network, cfg.consensus
     fusion = ConsensusOnMeasurements.for_network(adjacency=net.adjacency, weights=c.weights,
                                                  iterations=int(c.iterations), omega=c.omega)
-    lin = ConstantVelocity(data.num_agents, float(cfg.task.lin.noise_std))
+    lin = ConstantVelocity(data.num_agents, float(cfg.task.cm_fusion.noise_std))
     obs = LinearPositionObservation(net.meas_std)
     res = track(ep.measurements, net, lin, obs, fusion, data.ctx, _init(cfg, data, ep.measurements, fusion))
     info = res.info.sum(0)
@@ -132,10 +187,11 @@ def cm_fused(cfg: DictConfig, data: Data, ep: Episodes) -> Tensor:
     return torch.cholesky_solve(q, safe_cholesky(info)).squeeze(-1)
 
 
-def learner(cfg, model, data: Data, fusion: Fusion) -> OnlineLearner:
+def learner(cfg, model, data: Data, fusion: Fusion, dtype=torch.float64, device="cpu") -> OnlineLearner:
     """Algorithm 1 (:class:`~dslearn.learning.online.OnlineLearner`) for ``model`` on ``data``'s network, with
-    the root ``filter`` group's prediction step (EKF, or ``filter=ukf``)."""
-    return OnlineLearner(data.network, model, LinearPositionObservation(data.network.meas_std), fusion, data.ctx,
+    the root ``filter`` group's prediction step (EKF, or ``filter=ukf``) and a fresh sensor model of the
+    root ``observation`` group (:func:`observation_model`; ``observation=gp`` learns online too)."""
+    return OnlineLearner(data.network, model, observation_model(cfg, data, dtype, torch.device(device)), fusion, data.ctx,
                          init=lambda ep: _init(cfg, data, ep, fusion), predict_step=build_predict(cfg),
                          learn_gate_std=cfg.filter.get("learn_gate_std"))
 
@@ -153,8 +209,30 @@ def evaluate_tracking(alg: OnlineLearner, data: Data, per_node: bool) -> dict[st
     return m
 
 
-def _train_lstm(cfg: DictConfig, data: Data, win, seed: int, dtype, device):
-    return train_lstm_model(cfg.task.lstm, data.num_agents, data.ctx.dt, win, seed, dtype, device, cfg.get("progress", False))
+class OfflineData:
+    """The trajectories offline models learn from, made once per data source: the true training
+    tracks, or the CM-fused estimates (:func:`cm_fused`, made on first use)."""
+
+    def __init__(self, cfg: DictConfig, data: Data, times: dict | None = None):
+        self.cfg, self.data, self.times, self._fused = cfg, data, times if times is not None else {}, None
+
+    def __call__(self, model: MotionModel) -> Tensor:
+        src = offline_source(model, self.cfg)
+        if src == "truth":
+            return self.data.train.states
+        if self._fused is None:
+            t0 = time.perf_counter()
+            self._fused = cm_fused(self.cfg, self.data, self.data.train)
+            self.times["cm_fuse"] = time.perf_counter() - t0
+        return self._fused
+
+
+def fit_offline(model: MotionModel, source: OfflineData, n: int, seed: int) -> None:
+    """Fit an offline model on the first ``n`` training trajectories of its source (no-op for the others)."""
+    if model.learns_offline:
+        model.fit_offline(source(model)[:n], source.data.ctx.dt, seed=int(seed))
+        log.info("%s: %s fitted offline on %d %s training episodes: %s", source.data.label, type(model).__name__, n,
+                 offline_source(model, source.cfg), {k: round(v, 4) for k, v in getattr(model, "fit_info", {}).items()})
 
 
 def _pred_rows(model, src: Data, per_node: bool, **keys) -> pd.DataFrame:
@@ -202,15 +280,17 @@ def position_rows(traj: Tensor, src: Data, n: int, **keys) -> pd.DataFrame:
 
 # protocols ---------------------------------------------------------------------------------
 def protocol_tables(cfg: DictConfig, data: Data, seed: int, dtype, device) -> pd.DataFrame:
-    """Tables III–IV and Fig. 4 rows for one data source."""
-    t = cfg.task
-    models = list(t.models)
+    """Tables III–IV and Fig. 4 rows for one data source: every model of ``task.models`` tracks the
+    test episodes (after its online or offline learning on the ``n`` training episodes) and rolls
+    them out from the truth; an offline model's fit adds its ``fit_info`` as parameter rows
+    (``<label>_<key>``, e.g. ``sfm_tau``, ``lstm_train_loss``)."""
     n_train = len(data.train)
     fusion = _fusion(cfg, data.network)
     net = data.network
     base = dict(data=data.kind, scene=data.label, train_episodes=n_train, test_episodes=len(data.test), seed=seed)
     frames, times = [], {}
-    n_plot = min(int(t.plot_episodes), len(data.test))
+    n_plot = min(int(cfg.task.plot_episodes), len(data.test))
+    offline = OfflineData(cfg, data, times)
 
     def param(metric, value):  # one scalar row (node avg, node_kind param)
         return pd.DataFrame({"node": ["avg"], "node_kind": ["param"], "episode": [0], "metric": [metric], "value": [value],
@@ -226,47 +306,19 @@ def protocol_tables(cfg: DictConfig, data: Data, seed: int, dtype, device) -> pd
         add("-", "-", param(k, float(v)))
     if n_plot:
         add("truth", "-", position_rows(data.test.states, data, n_plot, **base))
-    if "lin" in models:
+    for _, label, spec in model_entries(cfg):
         t0 = time.perf_counter()
-        lin = ConstantVelocity(data.num_agents, float(t.lin.noise_std))
-        add("lin", fusion.name, metric_rows(evaluate_tracking(learner(cfg, lin, data, fusion), data, False), net, **base))
-        add("lin", fusion.name, trajectory_rows(lin, data, False, n_plot, **base))
-        times["lin"] = time.perf_counter() - t0
-    fused = None
-    if "lstm" in models or ("sfm" in models and t.sfm.fit_on == "fused"):
-        t0 = time.perf_counter()
-        fused = cm_fused(cfg, data, data.train)
-        times["cm_fuse"] = time.perf_counter() - t0
-    if "sfm" in models:
-        t0 = time.perf_counter()
-        src = data.train.states[:n_train] if t.sfm.fit_on == "truth" else fused[:n_train]
-        sfm, params, loss = fit_episode_social_force(src.cpu(), data.test.states, data.ctx.dt, t.sfm)
-        log.info("%s: SFM fitted on %s: %s (roll-out error %.3f)", data.label, t.sfm.fit_on, params, loss)
-        add("sfm", fusion.name, metric_rows(evaluate_tracking(learner(cfg, sfm, data, fusion), data, False), net, **base))
-        add("sfm", fusion.name, trajectory_rows(sfm, data, False, n_plot, **base))
-        for k, v in {**params, "fit_loss": loss}.items():
-            add("sfm", "-", param(f"sfm_{k}", v))
-        times["sfm"] = time.perf_counter() - t0
-    for key in ("gp", "gp_cv"):
-        if key not in models:
-            continue
-        t0 = time.perf_counter()
-        gp = _gp(cfg, data, dtype, device, key == "gp_cv")
-        alg = learner(cfg, gp, data, fusion)
-        train_online(alg, data, n_train)
-        name = _gp_name(cfg, key == "gp_cv")
-        add(name, fusion.name, metric_rows(evaluate_tracking(alg, data, True), net, **base))
-        add(name, fusion.name, trajectory_rows(gp, data, True, n_plot, **base))
-        times[key] = time.perf_counter() - t0
-    if "lstm" in models:
-        t0 = time.perf_counter()
-        win = lstm_windows(fused, int(t.lstm.obs_len), int(t.lstm.pred_len))
-        lstm, curve = _train_lstm(cfg, data, win, seed, dtype, device)
-        add("lstm", "cm", _pred_rows(lstm, data, False, **base))
-        add("lstm", "cm", trajectory_rows(lstm, data, False, n_plot, **base))
-        last = curve.iloc[int(curve.attrs.get("restored_epoch", len(curve))) - 1]
-        add("lstm", "cm", param("lstm_train_loss", float(last["train_loss"])))
-        times["lstm"] = time.perf_counter() - t0
+        model = build_model(spec, data, dtype, device)
+        fit_offline(model, offline, n_train, seed)
+        for k, v in getattr(model, "fit_info", {}).items():
+            add(label, "-", param(f"{label}_{k}", float(v)))
+        model.begin_episodes(data.test.states)
+        alg = learner(cfg, model, data, fusion, dtype, device)
+        if alg.learnable:
+            train_online(alg, data, n_train)
+        add(label, fusion.name, metric_rows(evaluate_tracking(alg, data, model.learnable), net, **base))
+        add(label, fusion.name, trajectory_rows(model, data, model.learnable, n_plot, **base))
+        times[label] = time.perf_counter() - t0
     log.info("%s: component times %s", data.label, {k: round(v, 1) for k, v in times.items()})
     df = pd.concat(frames, ignore_index=True)
     df.attrs["times"] = times
@@ -274,31 +326,30 @@ def protocol_tables(cfg: DictConfig, data: Data, seed: int, dtype, device) -> pd
 
 
 def protocol_data_size(cfg: DictConfig, data: Data, seed: int, dtype, device) -> pd.DataFrame:
-    """Fig. 5 rows: GP (online, consensus EKF) and LSTM (offline, CM-fused) prediction error vs
-    number of training episodes, for one data source and seed."""
+    """Fig. 5 rows for one data source and seed: every model of ``task.models`` after ``n`` training
+    episodes, ``n`` in ``task.data_sizes`` (online models learn on, episode after episode; offline
+    models are fitted again on the first ``n``, with seed ``seed * 7919 + n``)."""
     t = cfg.task
     sizes = sorted({min(int(v), len(data.train)) for v in t.data_sizes})
     fusion = _fusion(cfg, data.network)
     net = data.network
     frames = []
     base = dict(data=data.kind, scene=data.label, test_episodes=len(data.test), seed=seed)
-    keys = [k for k in ("gp", "gp_cv") if k in t.models]
-    gps = {k: learner(cfg, _gp(cfg, data, dtype, device, k == "gp_cv"), data, fusion) for k in keys}
-    fused = cm_fused(cfg, data, data.train)
+    offline = OfflineData(cfg, data)
+    runs = []
+    for _, label, spec in model_entries(cfg):
+        model = build_model(spec, data, dtype, device)
+        runs.append((label, model, learner(cfg, model, data, fusion, dtype, device)))
     for n in sizes:
-        for k, alg in gps.items():
-            train_online(alg, data, n)
-            m = evaluate_tracking(alg, data, True)
-            df = metric_rows(m, net, train_episodes=n, **base)
-            df.insert(0, "model", _gp_name(cfg, k == "gp_cv"))
+        for label, model, alg in runs:
+            fit_offline(model, offline, n, seed * 7919 + n)
+            model.begin_episodes(data.test.states)
+            if alg.learnable:
+                train_online(alg, data, n)
+            df = metric_rows(evaluate_tracking(alg, data, model.learnable), net, train_episodes=n, **base)
+            df.insert(0, "model", label)
             df.insert(1, "consensus", fusion.name)
             frames.append(df)
-        win = lstm_windows(fused[:n], int(t.lstm.obs_len), int(t.lstm.pred_len))
-        lstm, _ = _train_lstm(cfg, data, win, seed * 7919 + n, dtype, device)
-        df = _pred_rows(lstm, data, False, train_episodes=n, **base)
-        df.insert(0, "model", "lstm")
-        df.insert(1, "consensus", "cm")
-        frames.append(df)
         log.info("%s seed %d: n=%d done", data.label, seed, n)
     return pd.concat(frames, ignore_index=True)
 

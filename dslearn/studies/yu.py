@@ -21,6 +21,7 @@ from omegaconf import DictConfig
 
 from dslearn.compose import build_parts
 from dslearn.diagnostics import Diagnostics
+from dslearn.errors import ConfigError
 from dslearn.filters.distributed import initial_belief
 from dslearn.learning.online import OnlineLearner, checkpoints as eval_points
 from dslearn.metrics import metric_rows, prediction_error, tracking_metrics
@@ -95,10 +96,14 @@ class YuStudy:
         learnable = learner.learnable
         checkpoints = self.checkpoints() if learnable else [int(c.data.train_episodes)]
         t0 = time.perf_counter()
+        diag = diagnostics or Diagnostics()
+        if model.learns_offline:  # an offline model (the LSTM) learns once, from the training episodes' true tracks
+            with diag.timed("fit_offline"):
+                model.fit_offline(offline_trajectories(model, train), ctx.dt, seed=int(c.seed))
+        model.begin_episodes(test.states)
         bar = training_bar(max(checkpoints), scenario.steps, c.model, enable=progress and learnable, desc=f"train {c.model.name}/{fusion.name}")
         tbar = evaluation_bar(checkpoints, scenario.steps, c.model, enable=progress, learnable=learnable, desc="test", position=1)
 
-        diag = diagnostics or Diagnostics()
         # the filter's prediction step, when not the EKF's, labels the model's rows (gp_increment+ukf)
         step = getattr(p.predict, "name", "ekf")
         model_label = str(c.model.name) if step == "ekf" else f"{c.model.name}+{step}"
@@ -125,6 +130,21 @@ class YuStudy:
         tbar.close()
         self.model, self.network, self.fusion = model, network, fusion
         return df
+
+
+def check_offline(model) -> None:
+    """ConfigError unless the synthetic studies can give the offline ``model`` what it learns from
+    (``model.train_on`` truth or null: the true tracks)."""
+    if (model.train_on or "truth") != "truth":
+        raise ConfigError(f"model.train_on={model.train_on}: the synthetic studies train offline models on the true "
+                          "tracks of their training episodes (model.train_on=truth or null)")
+
+
+def offline_trajectories(model, train) -> torch.Tensor:
+    """What an offline model learns from in the synthetic study: the true tracks ``(B, K+1, Dx)`` of the
+    training episodes (``model.train_on`` truth or null; the filter still sees only measurements)."""
+    check_offline(model)
+    return train.states
 
 
 def run(cfg: DictConfig, diagnostics=None) -> pd.DataFrame:

@@ -15,6 +15,7 @@ setting share the same episodes, node-failure schedule, outliers and link-failur
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 
@@ -31,6 +32,7 @@ from dslearn.learning.online import OnlineLearner
 from dslearn.metrics import tracking_metrics
 from dslearn.sim.scenario import episode_streams
 from dslearn.streams import Streams
+from dslearn.studies.yu import check_offline, offline_trajectories
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +90,7 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     grid = settings(t)
     cells = len(grid) * len(t.models) * len(t.fusions)
     frames, k, t0 = [], 0, time.perf_counter()
+    offline = fit_offline_models(models, scenario, network, ctx, t.train_episodes, seed, dtype, device)
     from tqdm.auto import tqdm
 
     bar = tqdm(total=cells, desc="yu_faults cells", disable=not bool(cfg.get("progress") or False))
@@ -111,7 +114,8 @@ def run(cfg: DictConfig) -> pd.DataFrame:
         for mname in t.models:
             for fname in t.fusions:
                 k += 1
-                df = _cell(cfg, st, si, scenario, network, ctx, models[mname], fname, fusions[fname], faulty, dtype, device, seed)
+                df = _cell(cfg, st, si, scenario, network, ctx, models[mname], fname, fusions[fname], faulty, dtype, device,
+                           seed, offline[mname])
                 frames.append(df)
                 bar.update(1)
                 te = df[(df.metric == "track_err") & (df.node == "alive")]["value"].mean()
@@ -128,14 +132,37 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     return out
 
 
-def _cell(cfg, st, si, scenario, network, ctx, mcfg, fname, fcfg, faulty, dtype, device, seed) -> pd.DataFrame:
+def fit_offline_models(models: dict, scenario, network, ctx, train_episodes: int, seed: int, dtype, device) -> dict:
+    """The offline models of the grid (``model.learns_offline``: the LSTM), each fitted once, before any cell,
+    on the true tracks of the training episodes, which every fault setting shares (faults act on the
+    measurements and the links only; :func:`dslearn.studies.yu.offline_trajectories`); ``{name: model or
+    None}`` (None: a model built per cell). What a model cannot learn from is refused before any work."""
+    out, probes = {}, {}
+    for name, node in models.items():
+        with torch.random.fork_rng(devices=[]):  # a probe: shapes only (meta device), no draw of the run's
+            probes[name] = build_motion_model(node, scenario, network, dtype, torch.device("meta"))
+        if probes[name].learns_offline:
+            check_offline(probes[name])
+        out[name] = None
+    if any(p.learns_offline for p in probes.values()):
+        train = scenario.sample(train_episodes, network, episode_streams(seed, "train", 0, train_episodes))
+        for name, probe in probes.items():
+            if probe.learns_offline:
+                model = build_motion_model(models[name], scenario, network, dtype, device)
+                out[name] = model.fit_offline(offline_trajectories(model, train).to(device, dtype), ctx.dt, seed=seed)
+    return out
+
+
+def _cell(cfg, st, si, scenario, network, ctx, mcfg, fname, fcfg, faulty, dtype, device, seed, fitted=None) -> pd.DataFrame:
     t = cfg.task
-    model = build_motion_model(mcfg, scenario, network, dtype, device)
+    # an offline model is the one fitted before the grid (a copy per cell); the others are built fresh
+    model = copy.deepcopy(fitted) if fitted is not None else build_motion_model(mcfg, scenario, network, dtype, device)
     obs = build_observation(cfg.observation, network, dtype, device)
     fusion = FaultyFusion(build_fusion(fcfg, network), network.adjacency, st["link_fail"], t.weights,
                           seed=seed * 1_000_003 + 31 * si + 7)
     train, alive_tr = faulty["train"]
     test, alive_te = faulty["test"]
+    model.begin_episodes(test.states)
     learner = OnlineLearner(
         network, model, obs, fusion, ctx,
         init=lambda ep: initial_belief(ep, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std),
