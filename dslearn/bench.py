@@ -237,8 +237,8 @@ def item_grid(experiment: str = "yu_table1") -> list[dict]:
 
 def _make_gp(variant: str, nodes: int, n: int, dim: int, extra: int, gen, dtype=torch.float64):
     """A GP of ``variant`` holding ``n`` random points per node (bulk-loaded)."""
-    from dslearn.learning.gp import OnlineGP
-    from dslearn.learning.sparse import SGPR, SSGP, WindowGP
+    from dslearn.models.gp_backends.exact import OnlineGP
+    from dslearn.models.gp_backends.sparse import SGPR, SSGP, WindowGP
 
     X = 2 * torch.randn(nodes, n, dim, generator=gen, dtype=dtype)
     Y = torch.sin(X)
@@ -355,7 +355,7 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
                peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device))
     if ref_steps:
         from dslearn.reference import ReferenceFusion, ReferenceGP, ReferenceYu
-        from dslearn.sim.scenario import Episodes
+        from dslearn.episodes import Episodes
 
         mc = cfg.model
         ref_nodes = [ReferenceGP(scenario.state_dim, mc.outputscale, mc.lengthscale, mc.noise_std, mc.mean, mc.noise, torch.float64)

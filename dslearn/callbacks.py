@@ -187,7 +187,7 @@ class GatherResults(Callback):
             import sys
 
             log.error("%s", e)
-            print(f"dslearn-run: sweep folder busy: {' '.join(str(e).split())}", file=sys.stderr, flush=True)
+            print(f"dslearn-run: sweep folder busy: {' '.join(str(e).split())} (hydra.sweep.dir)", file=sys.stderr, flush=True)
             raise SystemExit(2)
         if config.get("resume"):
             if existed:

@@ -1,5 +1,6 @@
-r"""Trajectory forecasting: displacement errors, the constant-velocity baseline, the GP and LSTM
-roll-outs of observed positions (``(M, T_obs, 2)`` pedestrian-windows, metres).
+r"""Trajectory forecasting: displacement errors, the constant-velocity baseline and the GP roll-outs
+of observed positions (``(M, T_obs, 2)`` pedestrian-windows, metres; the LSTM's batched prediction
+is :func:`dslearn.models.lstm.lstm_predict`).
 
 Used by the ETH/UCY forecasting study (:mod:`dslearn.studies.ethucy_forecast`); everything here
 works on position tensors only (no data set, no config file).
@@ -10,9 +11,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from dslearn.learning.gp import OnlineGP
 from dslearn.models.gp import GPMotionModel
-from dslearn.models.lstm import SocialLSTM
+from dslearn.models.gp_backends import OnlineGP
 
 
 def ade_fde(pred: Tensor, truth: Tensor) -> tuple[Tensor, Tensor]:
@@ -101,21 +101,6 @@ def gp_state_rollout(model: GPMotionModel, obs: Tensor, pred_len: int, dt: float
         x = gp_mean(model.gp, x)
         seq.append(x[:, :2])
     return torch.stack(seq, 1)
-
-
-@torch.no_grad()
-def lstm_predict(model: SocialLSTM, obs: Tensor, batch: int = 64) -> Tensor:
-    """``(N, T_obs, A, 2)`` windows -> ``(N, pred_len, A, 2)`` in batches (trimmed padding)."""
-    outs = []
-    for i in range(0, obs.shape[0], batch):
-        o = obs[i : i + batch]
-        present = torch.isfinite(o).all(-1).all(1).any(0)
-        k = int(present.nonzero().max()) + 1 if bool(present.any()) else 1  # windows are packed
-        pred = model.predict(o[:, :, :k])
-        full = torch.full((o.shape[0], pred.shape[1], o.shape[2], 2), float("nan"), dtype=o.dtype)
-        full[:, :, :k] = pred
-        outs.append(full)
-    return torch.cat(outs, 0)
 
 
 def gp_forecaster(kind: str, quads: Tensor, dt: float, c, gen: torch.Generator, dtype, device):

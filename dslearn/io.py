@@ -156,7 +156,7 @@ class RunLock:
         pid = owner.split()[0] if owner != "?" else "?"
         return RunDirBusy(
             f"{self.path.parent} is in use by another dslearn-run (pid {pid}, lock file {self.path}); "
-            "wait for it to finish or choose another hydra.run.dir / hydra.sweep.dir"
+            "wait for it to finish or choose another run folder"
         )
 
     def acquire(self) -> "RunLock":

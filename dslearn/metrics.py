@@ -9,7 +9,7 @@ from torch import Tensor
 
 from dslearn.filters.distributed import TrackResult
 from dslearn.models.base import MotionModel
-from dslearn.sim.network import SensorNetwork
+from dslearn.network import SensorNetwork
 from dslearn.types import StepContext, agents
 
 

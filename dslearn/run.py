@@ -67,6 +67,8 @@ log = logging.getLogger("dslearn.run")
 CONF_DIR = str(_CONF_DIR)
 #: run folder (absolute) -> the lock :func:`main` took on it before Hydra started (a single run)
 _PRELOCKED: dict[str, RunLock] = {}
+#: the keys that choose the run folder, named when it is busy
+_BUSY_KEYS = "hydra.run.dir / hydra.sweep.dir"
 #: the command line as the user gave it (recorded in meta.json; Hydra may get a resolved run folder)
 _USER_ARGV: list[str] | None = None
 STATUS_FILE = "status.json"
@@ -347,7 +349,7 @@ def _app(cfg: DictConfig) -> dict:
     try:
         lock = held if held is not None else RunLock(out_dir).acquire()
     except RunDirBusy as e:  # not logged: the folder's run.log is its owner's
-        _say("run folder busy", e)
+        _say("run folder busy", f"{e} ({_BUSY_KEYS})")
         raise SystemExit(2)
     try:
         return _run_locked(cfg, out_dir, multirun, job, tag, t0)
@@ -1080,7 +1082,7 @@ def main(argv: list[str] | None = None) -> None:
         try:
             hydra_argv, held = lock_run_dir(argv, plan.get("run_dir"))
         except RunDirBusy as e:  # before Hydra wrote anything into the folder
-            _say("run folder busy", e)
+            _say("run folder busy", f"{e} ({_BUSY_KEYS})")
             raise SystemExit(2)
         global _USER_ARGV
         old = sys.argv

@@ -39,13 +39,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from dslearn.compose import DTYPES
 from dslearn.schemas.core import CONF_DIR as _CONF_DIR
-from dslearn.data.datasets import CONVENTIONS, DatasetSchema, check_dataset, check_files, load_dataset, task_datasets
+from dslearn.data.datasets import CONVENTIONS, check_dataset, check_files, load_dataset, task_datasets
 from dslearn.data.ethucy import SPLIT_PARTS, split_scene, windows
 from dslearn.data.window_tensors import cat_windows, per_agent, subsample
 from dslearn.errors import ConfigError, DataFormatError, check_choice
 from dslearn.io import atomic_write_csv
 from dslearn.models.lstm import SCHEDULE_KEYS, SocialLSTM, save_checkpoint, schedule_from_config, train_lstm
 from dslearn.schemas.base import ranged
+from dslearn.schemas.datasets import DatasetSchema
 
 log = logging.getLogger("dslearn.train_lstm")
 CONF_DIR = str(_CONF_DIR)

@@ -113,7 +113,7 @@ def test_braga_weight_options_compose_and_build():
         over = [f"task.consensus.weights={rule}", *over]
         cfg = _compose("braga_tbn", *over)
         validate_config(cfg)
-        return tbn_params(cfg.task)["weights"]
+        return tbn_params(OmegaConf.to_container(cfg.task, resolve=True))["weights"]
 
     def same(w, rows):
         torch.testing.assert_close(w, torch.tensor(rows, dtype=torch.float64), rtol=0, atol=1e-15)
@@ -161,8 +161,9 @@ def test_braga_init_mode_true_from_the_command_line():
 
     cfg = _compose("braga_tbn", "task.em.init_mode=true")
     validate_config(cfg)
-    assert tbn_params(cfg.task)["init_mode"] == "true"
-    assert tbn_params(_compose("braga_tbn", "task.em.init_mode=uniform").task)["init_mode"] == "uniform"
+    assert tbn_params(OmegaConf.to_container(cfg.task, resolve=True))["init_mode"] == "true"
+    uniform = _compose("braga_tbn", "task.em.init_mode=uniform").task
+    assert tbn_params(OmegaConf.to_container(uniform, resolve=True))["init_mode"] == "uniform"
 
 
 def test_run_tbn_takes_no_truth():

@@ -86,7 +86,7 @@ DATASETS = {  # label, files, frame rate (the physical step is 10 frames / fps),
 
 
 def _check_dataset(option, cfg, world):
-    from dslearn.data.datasets import spec_from_config
+    from dslearn.schemas.datasets import spec_from_config
 
     label, files, fps, val = DATASETS[option]
     spec = spec_from_config(option, cfg.dataset)

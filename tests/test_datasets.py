@@ -14,19 +14,11 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from dslearn.schemas.core import CONF_DIR
-from dslearn.data.datasets import (
-    DatasetSpec,
-    leave_one_out,
-    load_dataset,
-    packaged_dataset,
-    packaged_folds,
-    packaged_names,
-    spec_from_config,
-    task_datasets,
-)
+from dslearn.data.datasets import DatasetSpec, leave_one_out, load_dataset, task_datasets
 from dslearn.data.ethucy import data_available, default_root, split_scene
 from dslearn.errors import ConfigError, DataFormatError
 from dslearn.schemas import validate_task
+from dslearn.schemas.datasets import packaged_dataset, packaged_folds, packaged_names, spec_from_config
 
 ETHUCY = ("eth", "hotel", "zara1", "zara2", "univ", "zara3", "uni_examples")
 
@@ -106,6 +98,56 @@ def test_units_root_and_file_options(tmp_path):
         spec_from_config("bad", {"label": "B", "files": ["a"], "colour": "red"})
     # a data set without a label is shown by its name (the report never needs a built-in label)
     assert spec_from_config("mall", {"files": ["a.txt"]}).label == "mall"
+
+
+BAD_DATASETS = [
+    {"files": []},
+    {"files": ["a"], "frame_step": 0},
+    {"files": ["a"], "frame_step": -3},
+    {"files": ["a"], "dt": 0.0},
+    {"files": ["a"], "dt": -0.4},
+    {"files": ["a"], "dt": float("inf")},
+    {"files": ["a"], "fps": 0.0},
+    {"files": ["a"], "fps": float("nan")},
+    {"files": ["a"], "units": "km"},
+    {"files": ["a"], "colour": "red"},
+    {"files": ["a"], "colour": "red", "shade": 1},
+]
+GOOD_DATASETS = [
+    {"files": ["a"]},
+    {"label": "L", "files": ["a", "b"], "root": None, "frame_step": 1, "dt": 1e-3, "fps": None, "units": "cm",
+     "val_first_frame": [10, 20]},
+    {"files": ["a"], "frame_step": True},  # a bool is no number here (the composed schema refuses its type)
+]
+
+
+@pytest.mark.parametrize("plain", [True, False], ids=["dict", "DictConfig"])
+def test_the_data_layer_checks_a_data_set_as_the_schema_rules_say(plain):
+    """``check_dataset`` (the data layer, plain Python) refuses exactly what the validation layer's
+    ``check_ranges`` refuses under the same rules (:data:`DATASET_RULES` as ``ranged`` fields), with the
+    same message, on plain values and on config nodes; it adds one ``val_first_frame`` per file."""
+    import dataclasses
+
+    from omegaconf import OmegaConf
+
+    from dslearn.data.datasets import DATASET_RULES, check_dataset
+    from dslearn.schemas.base import check_ranges, ranged
+
+    rules = dataclasses.make_dataclass("Rules", [(k, object, ranged(None, **r)) for k, r in DATASET_RULES.items()])
+    node = (lambda v: v) if plain else OmegaConf.create
+    for values in BAD_DATASETS:
+        with pytest.raises(ConfigError) as want:
+            check_ranges(node(values), rules, "task.datasets.x")
+        with pytest.raises(ConfigError) as got:
+            check_dataset("x", node(values), "task.datasets.x")
+        assert str(got.value) == str(want.value), values
+    for values in GOOD_DATASETS:
+        check_ranges(node(values), rules, "task.datasets.x")
+        check_dataset("x", node(values), "task.datasets.x")
+    with pytest.raises(ConfigError, match=r"^task\.datasets\.x\.val_first_frame has 1 entries for 2 files; give one per file or null$"):
+        check_dataset("x", node({"files": ["a", "b"], "val_first_frame": [5]}), "task.datasets.x")
+    with pytest.raises(ConfigError, match=r"^task\.datasets\.x\.frame_step=0 must be >= 1$"):
+        check_dataset("x", node({"files": ["a"], "frame_step": 0}), "task.datasets.x")
 
 
 def test_every_packaged_data_set_composes_and_matches_the_folds():

@@ -10,7 +10,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from dslearn.learning import hyperopt as ho
+from dslearn.filters.dgpt import hyperopt as ho
 from dslearn.fusion.aggregation import (
     aggregate,
     aggregate_grbcm,
@@ -19,7 +19,7 @@ from dslearn.fusion.aggregation import (
     ucb_bound_grbcm,
     ucb_gamma,
 )
-from dslearn.learning.experts import (
+from dslearn.filters.dgpt.experts import (
     Hypers,
     closed_form_gp,
     expert_log_marginal_likelihood,
@@ -28,7 +28,8 @@ from dslearn.learning.experts import (
     predict_latent_slice,
 )
 from dslearn.sim.manoeuvres import generate_s1, generate_s2, generate_s3, s3_turn_rates, singer_sigma
-from dslearn.filters.dgpt import HyperConfig, _window, keyed_uniform, track
+from dslearn.filters.dgpt import HyperConfig, keyed_uniform, track
+from dslearn.filters.dgpt.tracker import _window
 from dslearn.errors import ConfigError
 from dslearn.reports import liu_dgpt as liu_report
 from dslearn.schemas import validate_task

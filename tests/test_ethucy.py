@@ -7,16 +7,9 @@ import pytest
 import torch
 
 from dslearn.data import ethucy
-from dslearn.data.ethucy import (
-    SCENES,
-    default_root,
-    fold_scenes,
-    load_scene,
-    read_trajectories,
-    scene_dt,
-    windows,
-)
+from dslearn.data.ethucy import default_root, read_trajectories, windows
 from dslearn.errors import ConfigError, DataFormatError
+from dslearn.schemas.datasets import SCENES, fold_scenes, load_scene, scene_dt
 
 GOOD = "780\t1.0\t8.46\t3.59\n790\t1.0\t9.57\t3.79\n800\t2.0\t13.64\t5.8\n800\t1.0\t10.67\t3.99\n"
 
@@ -191,7 +184,8 @@ def test_split_scene_by_time_per_file(tmp_path):
     """The benchmark's validation part starts at each file's first validation frame (the data set
     YAML's ``val_first_frame``, carried by the Scene): a time split (no row in both parts, nothing
     lost); files without a split go wholly to train."""
-    from dslearn.data.ethucy import VAL_FIRST_FRAME, Scene, split_scene
+    from dslearn.data.ethucy import Scene, split_scene
+    from dslearn.schemas.datasets import VAL_FIRST_FRAME
 
     cut = VAL_FIRST_FRAME["crowds_zara01.txt"]
     frames = [cut - 20, cut - 10, cut, cut + 10]

@@ -12,12 +12,12 @@ import dslearn.forecast as fc
 import dslearn.reports.ethucy_forecast as rep
 from dslearn.schemas.core import CONF_DIR
 from dslearn.data import window_tensors as dw
-from dslearn.data.datasets import packaged_dataset
 from dslearn.data.ethucy import data_available
 from dslearn.errors import ConfigError
-from dslearn.learning.gp import OnlineGP
+from dslearn.models.gp_backends.exact import OnlineGP
 from dslearn.models.gp import GPMotionModel
 from dslearn.schemas import validate_task
+from dslearn.schemas.datasets import packaged_dataset
 from dslearn.studies import ethucy_forecast as ef
 from dslearn.types import StepContext
 
@@ -145,7 +145,8 @@ def _cv_by_hand(scene: str, n_windows: int):
     recomputed in numpy from the raw files (the same 20-step windows, evenly subsampled)."""
     import numpy as np
 
-    from dslearn.data.ethucy import load_scene, windows
+    from dslearn.data.ethucy import windows
+    from dslearn.schemas.datasets import load_scene
 
     w, _ = windows(load_scene(scene), 20, 1, 2)
     idx = np.unique(np.round(np.linspace(0, w.shape[0] - 1, n_windows)).astype(int))

@@ -15,11 +15,11 @@ from dslearn.data.episodes import _groups, extract_episodes, finite_difference_v
 from dslearn.data.ethucy import data_available
 from dslearn.errors import ConfigError
 from dslearn.models.social_force import SocialForce
-from dslearn.sim.network import is_connected
+from dslearn.network import is_connected
 from dslearn.learning import sfm_fit
 from dslearn.learning.lstm import lstm_windows
-from dslearn.learning.gp import OnlineGP
-from dslearn.learning.means import ConstantVelocityMean
+from dslearn.models.gp_backends.exact import OnlineGP
+from dslearn.models.gp_backends.means import ConstantVelocityMean
 from dslearn.schemas import validate_task
 from dslearn.sim.real import Data, arena_network, perimeter_positions, scene_extent
 from dslearn.sim.scenario import measure

@@ -1,4 +1,5 @@
-"""Faults in the network (dslearn/fusion/faults.py), gating, and the yu_faults study end to end."""
+"""Faults in the network (dslearn/sim/faults.py: the data; dslearn/fusion/faults.py: the links), gating, and
+the yu_faults study end to end."""
 
 import math
 
@@ -9,19 +10,13 @@ from omegaconf import OmegaConf
 
 from dslearn.fusion.strategies import make_fusion, mix
 from dslearn.fusion.weights import metropolis, uniform
-from dslearn.fusion.faults import (
-    FaultyFusion,
-    add_outliers,
-    apply_node_failures,
-    draw_live_graph,
-    live_weights,
-    node_failure_schedule,
-)
+from dslearn.fusion.faults import FaultyFusion, draw_live_graph, live_weights
 from dslearn.diagnostics import Diagnostics
 from dslearn.filters.information import chi2_quantile, novel_information
 from dslearn.models import LinearPositionObservation
-from dslearn.sim.network import make_network
-from dslearn.sim.scenario import Episodes
+from dslearn.episodes import Episodes
+from dslearn.sim.faults import add_outliers, apply_node_failures, node_failure_schedule
+from dslearn.sim.placement import make_network
 
 
 @pytest.fixture
@@ -182,8 +177,9 @@ def test_yu_faults_report(tmp_path):
 def test_an_episode_s_faults_do_not_depend_on_its_batch():
     """Per-episode streams: episode 1's node failures, outliers and live graphs are the same alone
     and inside a batch of three (to the bit)."""
-    from dslearn.fusion.faults import add_outliers, draw_live_graph, node_failure_schedule
-    from dslearn.sim.network import make_network
+    from dslearn.fusion.faults import draw_live_graph
+    from dslearn.sim.faults import add_outliers, node_failure_schedule
+    from dslearn.sim.placement import make_network
     from dslearn.sim.scenario import SocialForceScenario, episode_streams
     from dslearn.streams import Streams
 

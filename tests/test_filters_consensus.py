@@ -7,7 +7,7 @@ from dslearn.fusion.strategies import make_fusion
 from dslearn.fusion.weights import metropolis, uniform
 from dslearn.filters.information import novel_information, predict, to_information, to_moment
 from dslearn.models import ConstantVelocity, LinearPositionObservation
-from dslearn.sim.network import make_network
+from dslearn.sim.placement import make_network
 from dslearn.sim.scenario import SocialForceScenario
 from dslearn.filters.distributed import initial_belief, track
 from dslearn.types import StepContext

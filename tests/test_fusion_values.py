@@ -13,7 +13,7 @@ import torch
 from dslearn.fusion.faults import FaultyFusion, draw_live_graph, live_weights
 from dslearn.fusion.strategies import make_fusion, mix
 from dslearn.fusion.weights import consensus_weights, half_max_degree, max_degree, metropolis, uniform
-from dslearn.sim.network import adjacency_from_edges
+from dslearn.network import adjacency_from_edges
 
 D = torch.float64
 

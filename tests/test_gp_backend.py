@@ -1,4 +1,4 @@
-"""The GP backend protocol (dslearn.models.gp_backend.GPBackend): every backend (exact with either
+"""The GP backend protocol (dslearn.models.gp_backends.protocol.GPBackend): every backend (exact with either
 factor, window, SGPR, SSGP) satisfies it; its variance gradient and differentiable mean against finite
 differences and the closed-form Jacobian; the aggregated GP over every backend against a hand
 computation of the four rules for two experts, its Jacobian against finite differences, a single node
@@ -15,11 +15,11 @@ import pytest
 import torch
 
 from dslearn.errors import ConfigError
-from dslearn.learning.gp import OnlineGP
-from dslearn.learning.sparse import SGPR, SSGP, WindowGP, make_online_gp
+from dslearn.models.gp_backends.exact import OnlineGP
+from dslearn.models.gp_backends.sparse import SGPR, SSGP, WindowGP, make_online_gp
 from dslearn.models.aggregated import AggregatedGPMotion
 from dslearn.models.gp import GPMotionModel
-from dslearn.models.gp_backend import GPBackend
+from dslearn.models.gp_backends.protocol import GPBackend
 from dslearn.models.observation import GPObservation
 from dslearn.types import StepContext
 

@@ -9,8 +9,8 @@ import torch
 
 from dslearn.errors import ConfigError
 from dslearn.filters.information import novel_information, predict
-from dslearn.learning.gp import OnlineGP
-from dslearn.learning.means import ConstantVelocityMean
+from dslearn.models.gp_backends.exact import OnlineGP
+from dslearn.models.gp_backends.means import ConstantVelocityMean
 from dslearn.models import ConstantVelocity, LinearPositionObservation
 from dslearn.models.gp import GPMotionModel
 from dslearn.types import StepContext, safe_cholesky

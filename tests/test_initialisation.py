@@ -9,7 +9,7 @@ import torch
 from dslearn.fusion.strategies import make_fusion
 from dslearn.fusion.weights import consensus_weights
 from dslearn.models.social_force import SocialForce, soft_distance, social_force_acceleration
-from dslearn.sim.network import make_network
+from dslearn.sim.placement import make_network
 from dslearn.sim.scenario import SocialForceScenario
 from dslearn.studies.yu import YuStudy
 from dslearn.filters.distributed import diffuse_prior, first_observations, initial_belief, prior_means

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from dslearn.errors import ConfigError
-from dslearn.learning import inverse_factor
-from dslearn.learning.gp import OnlineGP
+from dslearn.models.gp_backends import inverse_factor
+from dslearn.models.gp_backends.exact import OnlineGP
 from dslearn.models import GPMotionModel
 
 D = torch.float64

@@ -83,14 +83,15 @@ def test_consensus_200_equals_centralised_online_em():
     """The whole distributed online EM (RBPF, E-step, Algorithm 3, M-step) with 200 consensus rounds equals the
     centralised EM on the same random streams (common random numbers), node by node, over a short run past the
     burn-in; 10 rounds give a different run (the M-step then differs from the first M-step on)."""
-    from dslearn.learning.online_em import prepare_job, simulate_and_filter
+    from dslearn.learning.online_em import simulate_and_filter
+    from dslearn.studies.braga_tbn import job_from_config
 
     burn_in = 20
     cfg = _compose("experiment=braga_tbn", "seed=3", "task.mc_runs=2", "task.mc_batch=2", "task.workers=1",
                    "task.steps=80", "task.num_particles=30", f"task.em.burn_in={burn_in}", "task.steady_state_s=1.0",
                    "task.terrain.size_m=12000.0", "task.terrain.resolution_m=50.0", "task.record_every=20",
                    "task.zoom_s=0.5", "task.strategies=[centralised,consensus_200,consensus_10]")
-    _, res = simulate_and_filter(prepare_job(cfg), [0, 1])
+    _, res = simulate_and_filter(job_from_config(cfg), [0, 1])
     cent, c200, c10 = (slice(i, i + 1) for i in range(3))
     for name in ("mu", "sigma", "pi"):
         v = getattr(res, name)  # (T, R, C, S, ...)
@@ -108,7 +109,7 @@ def test_consensus_200_equals_centralised_online_em():
 
 # ------------------------------------------------------------------ Yu: hybrid consensus, L -> infinity
 def _yu_network():
-    from dslearn.sim.network import make_network
+    from dslearn.sim.placement import make_network
 
     return make_network()  # conf/network/yu.yaml: 4 sensors + 6 relays, irregular graph
 

@@ -6,7 +6,7 @@ import torch
 
 from dslearn.errors import ConfigError
 from dslearn.models import ConstantVelocity, GPMotionModel, SocialForce
-from dslearn.learning.gp import OnlineGP
+from dslearn.models.gp_backends.exact import OnlineGP
 from dslearn.models.social_force import social_force_acceleration
 from dslearn.types import StepContext, batch_jacobian
 

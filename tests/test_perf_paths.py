@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from dslearn.models import GPMotionModel
-from dslearn.learning.gp import OnlineGP
+from dslearn.models.gp_backends.exact import OnlineGP
 from dslearn.types import StepContext
 
 D = torch.float64

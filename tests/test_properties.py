@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 
 from dslearn.fusion.strategies import FUSIONS, make_fusion
 from dslearn.fusion.weights import WEIGHT_METHODS, consensus_weights
-from dslearn.learning.gp import OnlineGP
-from dslearn.sim.network import is_connected
+from dslearn.models.gp_backends.exact import OnlineGP
+from dslearn.network import is_connected
 
 D = torch.float64
 DOUBLY = [m for m in WEIGHT_METHODS if m != "uniform"]

@@ -1,4 +1,4 @@
-"""Scalable GP variants (dslearn.learning.sparse): each against its closed form / the exact GP."""
+"""Scalable GP variants (dslearn.models.gp_backends.sparse): each against its closed form / the exact GP."""
 
 import pytest
 import torch
@@ -6,8 +6,8 @@ from omegaconf import OmegaConf
 
 from dslearn.errors import ConfigError
 from dslearn.models import GPMotionModel
-from dslearn.learning.gp import OnlineGP
-from dslearn.learning.sparse import SGPR, SSGP, WindowGP, chol_update
+from dslearn.models.gp_backends.exact import OnlineGP
+from dslearn.models.gp_backends.sparse import SGPR, SSGP, WindowGP, chol_update
 from dslearn.types import StepContext
 
 D = torch.float64
@@ -184,7 +184,7 @@ def _tiny_cfg(model_overrides):
 
 
 def test_study_runs_each_variant_and_large_window_equals_exact(monkeypatch):
-    from dslearn.learning.gp import OnlineGP
+    from dslearn.models.gp_backends.exact import OnlineGP
     from dslearn.studies.yu import YuStudy
 
     ref = YuStudy.from_config(_tiny_cfg({})).run()

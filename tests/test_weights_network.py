@@ -3,7 +3,8 @@ import torch
 
 from dslearn.fusion.weights import consensus_weights, max_degree, metropolis, uniform, validate_weights
 from dslearn.errors import ConfigError
-from dslearn.sim.network import adjacency_from_edges, is_connected, make_network
+from dslearn.network import adjacency_from_edges, is_connected
+from dslearn.sim.placement import make_network
 
 
 def ring(n):

@@ -1,36 +1,31 @@
-r"""Trajectory data sets described by configuration: one YAML per data set (``conf/dataset/<name>.yaml``).
+r"""Trajectory data sets as plain values: what the loader needs to know about a set of files.
 
 A data set is a set of plain-text files in the ETH/UCY 4-column format (``frame ped x y``, read by
-:func:`dslearn.data.ethucy.read_trajectories`) with what the loader needs to know about them
-(:class:`DatasetSchema`): ``label`` (tables, figures), ``files`` (relative to ``root``; an absolute
-path is used as is), ``root`` (``null`` = ``task.data_root``, else ``$DSLEARN_ETHUCY_ROOT`` or
-``<repo>/../shared/data/eth_ucy``), ``frame_step`` (frames between a pedestrian's rows), ``dt``
-(seconds per row step under the ``benchmark`` convention), ``fps`` (video frame rate: the
-``physical`` step is ``frame_step / fps``; ``null`` = ``dt``), ``units`` (of ``x, y``) and
-``val_first_frame`` (per file, the first frame of the benchmark's validation part; ``null`` = the
-whole file trains).
+:func:`dslearn.data.ethucy.read_trajectories`) described by a :class:`DatasetSpec`: ``label``
+(tables, figures), ``files`` (relative to ``root``; an absolute path is used as is), ``root``
+(``None`` = the caller's data folder, else ``$DSLEARN_ETHUCY_ROOT`` or ``<repo>/../shared/data/eth_ucy``),
+``frame_step`` (frames between a pedestrian's rows), ``dt`` (seconds per row step under the
+``benchmark`` convention), ``fps`` (video frame rate: the ``physical`` step is ``frame_step / fps``;
+``None`` = ``dt``), ``units`` (of ``x, y``) and ``val_first_frame`` (per file, the first frame of the
+benchmark's validation part; ``None`` = the whole file trains). :func:`check_dataset` checks a data
+set's values (the keys of :data:`DATASET_KEYS`) and :func:`dataset_spec` makes the spec of them.
 
-The studies compose the data sets they may use into ``task.datasets.<name>`` (their task config
-lists the ETH/UCY scenes); a user's data set joins with one YAML in their own config folder::
-
-    dslearn-run experiment=ethucy_forecast hydra.searchpath=[file://my_conf] \
-        +dataset@task.datasets.mall=mall task.scenes=[mall] task.train_scenes=[mall]
-
-The ETH/UCY leave-one-scene-out folds are config too (``conf/folds/ethucy.yaml``, ``task.folds``):
-a fold trains on the pool minus its test scene (:func:`leave_one_out`); a new data set is in no
-fold unless it is added to the pool.
+A fold of the leave-one-scene-out protocol trains on the pool minus its test scene
+(:func:`leave_one_out`). Where the data sets and folds are described (one file per data set, the
+packaged ones and the user's) is the validation layer's business (:mod:`dslearn.schemas.datasets`).
 """
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, field
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional
 
 import numpy as np
 import pandas as pd
 
+from dslearn.data.ethucy import Scene, default_root, read_trajectories
 from dslearn.errors import ConfigError, check_choice
 
 CONVENTIONS = ("benchmark", "physical")
@@ -41,41 +36,23 @@ PED_OFFSET = 100_000
 DATA_ROOT_KEY = "task.data_root"
 #: where a study's config holds its data sets
 DATASETS_KEY = "task.datasets"
-
-
-def ranged(default=dataclasses.MISSING, *, factory=None, **rules):
-    """A field with range / choice rules, as :func:`dslearn.schemas.base.ranged` (which this module
-    cannot import at load time: the schemas package imports the task schemas, which import this)."""
-    if factory is not None:
-        return field(default_factory=factory, metadata=rules)
-    return field(default=default, metadata=rules)
-
-
-@dataclass
-class DatasetSchema:
-    """One data set (the fields of ``conf/dataset/<name>.yaml``)."""
-
-    label: str = ""
-    files: List[str] = ranged(factory=list, min_len=1)
-    root: Optional[str] = None
-    frame_step: int = ranged(10, ge=1)
-    dt: float = ranged(0.4, gt=0.0)
-    fps: Optional[float] = ranged(None, gt=0.0)
-    units: str = ranged("m", choices=tuple(UNITS))
-    val_first_frame: Optional[List[int]] = None
-
-
-@dataclass
-class FoldsSchema:
-    """Leave-one-scene-out folds (``conf/folds/<name>.yaml``): test scenes, and the training pool."""
-
-    test: List[str] = field(default_factory=list)
-    pool: List[str] = field(default_factory=list)
+#: the keys of a data set's values and the rules :func:`check_dataset` applies to them
+DATASET_RULES: dict[str, dict] = {
+    "label": {},
+    "files": {"min_len": 1},
+    "root": {},
+    "frame_step": {"ge": 1},
+    "dt": {"gt": 0.0},
+    "fps": {"gt": 0.0},
+    "units": {"choices": tuple(UNITS)},
+    "val_first_frame": {},
+}
+DATASET_KEYS = tuple(DATASET_RULES)
 
 
 @dataclass(frozen=True)
 class DatasetSpec:
-    """A checked data set: ``name`` (its key in ``task.datasets``) and the :class:`DatasetSchema` fields."""
+    """A checked data set: ``name`` (its key in ``task.datasets``) and its values (:data:`DATASET_KEYS`)."""
 
     name: str
     label: str
@@ -99,22 +76,53 @@ class DatasetSpec:
         return {} if self.val_first_frame is None else dict(zip(self.files, self.val_first_frame))
 
 
-def check_dataset(name: str, node, prefix: str) -> None:
-    """Ranges of one ``task.datasets.<name>`` node and its cross-field rules."""
-    from dslearn.schemas.base import check_ranges
-
-    check_ranges(node, DatasetSchema, prefix)
-    vf = node.get("val_first_frame")
-    if vf is not None and len(vf) != len(node["files"]):
-        raise ConfigError(f"{prefix}.val_first_frame has {len(vf)} entries for {len(node['files'])} files; give one per file or null")
+def _is_list(v) -> bool:
+    return isinstance(v, Sequence) and not isinstance(v, (str, bytes))
 
 
-def spec_from_config(name: str, node) -> DatasetSpec:
-    """A :class:`DatasetSpec` from a config node (DictConfig / dict) with the :class:`DatasetSchema` keys."""
-    get = node.get
-    unknown = set(node.keys()) - {f.name for f in dataclasses.fields(DatasetSchema)}
+def _check_value(name: str, v, rules: dict) -> None:
+    """One value against its rules (``min_len`` of a list, ``choices``, the bounds ``ge`` / ``gt``)."""
+    if _is_list(v):
+        if "min_len" in rules and len(v) < rules["min_len"]:
+            raise ConfigError(f"{name} has {len(v)} entries; it needs at least {rules['min_len']}")
+        return
+    if v is None:
+        return
+    choices = rules.get("choices")
+    if choices is not None and v not in choices:
+        raise ConfigError(f"{name}={v!r} is not allowed; choose one of {list(choices)}")
+    if not isinstance(v, (int, float)) or isinstance(v, bool):
+        return
+    if isinstance(v, float) and not math.isfinite(v) and ("ge" in rules or "gt" in rules):
+        raise ConfigError(f"{name}={v} must be a finite number")
+    if "ge" in rules and v < rules["ge"]:
+        raise ConfigError(f"{name}={v!r} must be >= {rules['ge']!r}")
+    if "gt" in rules and v <= rules["gt"]:
+        raise ConfigError(f"{name}={v!r} must be > {rules['gt']!r}")
+
+
+def check_dataset(name: str, values: Mapping, prefix: str) -> None:
+    """The values of one data set (a mapping of :data:`DATASET_KEYS`): no unknown key, the rules of
+    :data:`DATASET_RULES`, one ``val_first_frame`` per file. ConfigError naming ``prefix.<key>``."""
+    unknown = sorted(str(k) for k in values.keys() if k not in DATASET_RULES)
     if unknown:
-        raise ConfigError(f"dataset {name!r} has unknown keys {sorted(unknown)}; allowed: {[f.name for f in dataclasses.fields(DatasetSchema)]}")
+        where = ", ".join(f"{prefix}.{k}" if prefix else k for k in unknown)
+        raise ConfigError(f"{where}: unknown key; {prefix or 'the config'} takes {list(DATASET_KEYS)}")
+    for key, rules in DATASET_RULES.items():
+        if key in values:
+            _check_value(f"{prefix}.{key}" if prefix else key, values[key], rules)
+    vf = values.get("val_first_frame")
+    if vf is not None and len(vf) != len(values["files"]):
+        raise ConfigError(f"{prefix}.val_first_frame has {len(vf)} entries for {len(values['files'])} files; give one per file or null")
+
+
+def dataset_spec(name: str, values: Mapping) -> DatasetSpec:
+    """A :class:`DatasetSpec` from the values of a data set (a mapping of :data:`DATASET_KEYS`; a
+    key left out takes the spec's default, ``label`` the name)."""
+    get = values.get
+    unknown = set(values.keys()) - set(DATASET_KEYS)
+    if unknown:
+        raise ConfigError(f"dataset {name!r} has unknown keys {sorted(unknown)}; allowed: {list(DATASET_KEYS)}")
     vf = get("val_first_frame")
     fps = get("fps")
     return DatasetSpec(
@@ -124,23 +132,10 @@ def spec_from_config(name: str, node) -> DatasetSpec:
     )
 
 
-def task_datasets(task) -> dict[str, DatasetSpec]:
-    """Every data set composed into ``task.datasets`` (name -> spec)."""
+def task_datasets(task: Mapping) -> dict[str, DatasetSpec]:
+    """Every data set of ``task["datasets"]`` (a mapping of name -> the data set's values) as specs."""
     ds = task.get("datasets") or {}
-    return {str(k): spec_from_config(str(k), v) for k, v in ds.items()}
-
-
-def check_scene_names(field_name: str, names, task) -> None:
-    """Every name must be a data set of ``task.datasets`` (ConfigError naming the field and the choices)."""
-    known = list((task.get("datasets") or {}).keys())
-    for s in names:
-        if s not in known:
-            raise ConfigError(
-                f"{field_name}={s!r} is not a data set of task.datasets; choose one of {known} or add one with "
-                f"+dataset@task.datasets.{s}={s} (a conf/dataset/{s}.yaml in your hydra.searchpath folder)"
-            )
-    if len(set(names)) != len(list(names)):
-        raise ConfigError(f"{field_name}={list(names)} has duplicates")
+    return {str(k): dataset_spec(str(k), v) for k, v in ds.items()}
 
 
 def leave_one_out(test_scene: str, pool) -> tuple[str, ...]:
@@ -153,8 +148,6 @@ def resolve_root(spec: DatasetSpec, data_root, root_key: str = DATA_ROOT_KEY,
     """The folder the data set's relative files are in, and the config key that named it.
     ``root_key`` / ``datasets_key`` are the keys of the data folder and of the data sets in the
     caller's configuration (the studies': ``task.data_root``, ``task.datasets``)."""
-    from dslearn.data.ethucy import default_root
-
     if spec.root is None and all(Path(f).is_absolute() for f in spec.files):
         return Path("/"), f"{datasets_key}.{spec.name}.files"
     if spec.root is not None:
@@ -193,8 +186,6 @@ def load_dataset(spec: DatasetSpec, data_root=None, convention: str = "benchmark
         DataFormatError: a malformed file, or a frame id that is not a multiple of ``frame_step``
             (``file:line``).
     """
-    from dslearn.data.ethucy import Scene, read_trajectories
-
     check_choice("convention", convention, CONVENTIONS)
     paths = check_files(spec, data_root, root_key, datasets_key)
     dt = spec.step(convention)
@@ -212,52 +203,3 @@ def load_dataset(spec: DatasetSpec, data_root=None, convention: str = "benchmark
         parts.append(d[["file", "frame", "ped", "step", "t", "x", "y"]])
     return Scene(name=spec.name, dt=dt, convention=convention, df=pd.concat(parts, ignore_index=True),
                  label=spec.label, val_first_frame=spec.split())
-
-
-# ------------------------------------------------------------------------------------------
-# the packaged data sets (conf/dataset/*.yaml), for the Python API and the labels of a report
-def packaged_names() -> list[str]:
-    from dslearn.conf_paths import CONF_DIR
-
-    return sorted(p.stem for p in (Path(CONF_DIR) / "dataset").glob("*.yaml"))
-
-
-def packaged_dataset(name: str) -> DatasetSpec:
-    """The spec of ``conf/dataset/<name>.yaml`` in the packaged config folder."""
-    from omegaconf import OmegaConf
-
-    from dslearn.conf_paths import CONF_DIR
-
-    check_choice("scene", name, tuple(packaged_names()))
-    return spec_from_config(name, OmegaConf.load(Path(CONF_DIR) / "dataset" / f"{name}.yaml"))
-
-
-def packaged_folds(name: str = "ethucy") -> dict[str, list[str]]:
-    from omegaconf import OmegaConf
-
-    from dslearn.conf_paths import CONF_DIR
-
-    node = OmegaConf.load(Path(CONF_DIR) / "folds" / f"{name}.yaml")
-    return {"test": [str(s) for s in node.test], "pool": [str(s) for s in node.pool]}
-
-
-def run_labels(out_dir) -> dict[str, str]:
-    """Data set name -> label from the ``config.yaml`` of every run at or below ``out_dir`` (the
-    resolved config each run writes), falling back to the packaged data sets' labels."""
-    from omegaconf import OmegaConf
-
-    labels = {}
-    for n in packaged_names():
-        try:
-            labels[n] = packaged_dataset(n).label
-        except Exception:  # a broken packaged file must not break a report
-            pass
-    out_dir = Path(out_dir)
-    files = [out_dir / "config.yaml"] if (out_dir / "config.yaml").is_file() else sorted(out_dir.rglob("config.yaml"))
-    for f in files:
-        try:
-            ds = OmegaConf.load(f).get("task", {}).get("datasets") or {}
-            labels.update({str(k): str(v.get("label") or k) for k, v in ds.items()})
-        except Exception:  # not a run config
-            continue
-    return labels

@@ -1,15 +1,15 @@
-r"""ETH/UCY pedestrian trajectories: strict loader, scenes, leave-one-scene-out folds, windows.
+r"""ETH/UCY pedestrian trajectories: the strict reader, scenes, their benchmark time split, windows.
 
 The data and its quirks are described in ``../shared/data/eth_ucy/README.md`` (read it):
 plain-text files, one observation per line, 4 tab-separated fields ``frame_id ped_id x y``
 (metres), one row per pedestrian every 10 video frames.
 
-Scenes are data sets described by configuration (:mod:`dslearn.data.datasets`): one YAML per
-scene in ``conf/dataset/`` (``eth``: ``biwi_eth.txt``; ``hotel``; ``zara1``; ``zara2``; ``univ``:
-``students001.txt`` + ``students003.txt``; the training-only ``zara3`` and ``uni_examples``), with
-its files, label, frame step, time steps and benchmark train/validation split. The
-leave-one-scene-out folds are ``conf/folds/ethucy.yaml`` (:func:`fold_scenes`). :data:`SCENES`,
-:data:`ALL_SCENES` and :data:`VAL_FIRST_FRAME` are read from those files.
+Scenes are data sets described by plain values (:class:`dslearn.data.datasets.DatasetSpec`, loaded
+by :func:`dslearn.data.datasets.load_dataset`); the packaged ones (``eth``: ``biwi_eth.txt``;
+``hotel``; ``zara1``; ``zara2``; ``univ``: ``students001.txt`` + ``students003.txt``; the
+training-only ``zara3`` and ``uni_examples``), with their files, labels, frame steps, time steps and
+benchmark train/validation splits, and the leave-one-scene-out folds are described in the package's
+config files and read by :mod:`dslearn.schemas.datasets` (``load_scene``, ``fold_scenes``, ``SCENES``).
 
 Time step: one row step (10 frames) is 0.4 s under the ``benchmark`` convention for every file
 (what published ADE/FDE numbers use). Under the ``physical`` convention it is ``frame_step / fps``:
@@ -18,7 +18,7 @@ note), 0.4 s for every other file.
 
 Python use::
 
-    from dslearn.data import load_scene
+    from dslearn.schemas.datasets import load_scene
     sc = load_scene("zara1")                 # Scene(name, dt, convention, df)
     tracks = sc.tracks()                     # ped -> (T_i, 3) [step, x, y]
     pos, meta = windows(sc, length=20)       # (N, 20, A_max, 2), NaN-padded
@@ -38,33 +38,8 @@ from torch import Tensor
 
 from dslearn.errors import ConfigError, DataFormatError, check_choice
 
-CONVENTIONS = ("benchmark", "physical")
 ENV_ROOT = "DSLEARN_ETHUCY_ROOT"
 SPLIT_PARTS = ("all", "train", "val")
-
-
-def _scene_files(names) -> dict[str, tuple[str, ...]]:
-    from dslearn.data.datasets import packaged_dataset
-
-    return {n: packaged_dataset(n).files for n in names}
-
-
-def __getattr__(name: str):
-    """``SCENES`` (the five benchmark test scenes), ``ALL_SCENES`` (the fold pool), ``TRAIN_ONLY`` and
-    ``VAL_FIRST_FRAME`` (file -> first validation frame), read from ``conf/dataset/*.yaml`` and
-    ``conf/folds/ethucy.yaml`` (no scene, file or split is fixed in code)."""
-    from dslearn.data.datasets import packaged_dataset, packaged_folds
-
-    folds = packaged_folds("ethucy")
-    if name == "SCENES":
-        return _scene_files(folds["test"])
-    if name == "ALL_SCENES":
-        return _scene_files(folds["pool"])
-    if name == "TRAIN_ONLY":
-        return _scene_files([s for s in folds["pool"] if s not in folds["test"]])
-    if name == "VAL_FIRST_FRAME":
-        return {f: v for n in folds["pool"] for f, v in packaged_dataset(n).split().items()}
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _default_path() -> Path:
@@ -93,9 +68,6 @@ def default_root(key: str = "task.data_root") -> Path:
             "eth_ucy folder, the one holding biwi_eth.txt, crowds_zara01.txt, ..."
         )
     return root
-
-
-from dslearn.data.datasets import DATA_ROOT_KEY, PED_OFFSET  # noqa: E402,F401  (one name everywhere)
 
 
 def _decode(path: Path, raw: bytes) -> str:
@@ -204,26 +176,12 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def scene_dt(file_name: str, convention: str = "benchmark") -> float:
-    """Seconds per row step of a packaged data set's file (by its base name), from its YAML:
-    ``dt`` under ``benchmark``, ``frame_step / fps`` under ``physical``."""
-    from dslearn.data.datasets import packaged_dataset, packaged_names
-
-    check_choice("convention", convention, CONVENTIONS)
-    base = Path(file_name).name
-    for n in packaged_names():
-        spec = packaged_dataset(n)
-        if base in spec.files:
-            return spec.step(convention)
-    raise ConfigError(f"file {base!r} is in no conf/dataset/*.yaml data set")
-
-
 @dataclass
 class Scene:
     """One scene (one or more files) as a tidy table.
 
     Attributes:
-        name: scene name (a key of :data:`ALL_SCENES`).
+        name: scene name (its data set's name).
         dt: seconds per step under ``convention``.
         convention: ``benchmark`` or ``physical``.
         df: columns ``file`` (str), ``frame`` (int64), ``ped`` (int64, unique across the
@@ -255,21 +213,9 @@ class Scene:
         return out
 
 
-def load_scene(name: str, root: str | Path | None = None, convention: str = "benchmark") -> Scene:
-    """Load a packaged data set (``conf/dataset/<name>.yaml``) from ``root`` (default :func:`default_root`).
-
-    Raises:
-        ConfigError: unknown scene or convention, missing data root.
-        DataFormatError: a malformed file, or a frame id that is not a multiple of the frame step.
-    """
-    from dslearn.data.datasets import load_dataset, packaged_dataset
-
-    return load_dataset(packaged_dataset(name), root, convention)
-
-
 def split_scene(scene: Scene, part: str) -> Scene:
-    """The benchmark's train or validation part of a scene (split in time per file, see
-    :data:`VAL_FIRST_FRAME`); ``part="all"`` returns the scene itself.
+    """The benchmark's train or validation part of a scene (split in time per file at the scene's
+    ``val_first_frame``); ``part="all"`` returns the scene itself.
 
     Files without a known split (fixture files) go wholly to ``train``.
     """
@@ -281,16 +227,6 @@ def split_scene(scene: Scene, part: str) -> Scene:
     keep = is_val if part == "val" else ~is_val
     return Scene(name=f"{scene.name}:{part}", dt=scene.dt, convention=scene.convention, df=scene.df[keep].reset_index(drop=True),
                  label=scene.label, val_first_frame=scene.val_first_frame)
-
-
-def fold_scenes(test_scene: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """Leave-one-scene-out fold of ``conf/folds/ethucy.yaml``: ``(test scenes, training scenes)``
-    (training = the pool minus the test scene, so ``zara3`` and ``uni_examples`` always train)."""
-    from dslearn.data.datasets import leave_one_out, packaged_folds
-
-    folds = packaged_folds("ethucy")
-    check_choice("test scene", test_scene, tuple(folds["test"]))
-    return (test_scene,), leave_one_out(test_scene, folds["pool"])
 
 
 def windows(

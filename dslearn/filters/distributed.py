@@ -8,17 +8,17 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from dslearn.episodes import Measurements
 from dslearn.fusion.strategies import Fusion
 from dslearn.filters.information import novel_information, predict
 from dslearn.filters.smoother import transition_error_moments
 from dslearn.models.base import MotionModel, ObservationModel
-from dslearn.sim.network import SensorNetwork
-from dslearn.sim.scenario import Measurements
+from dslearn.network import SensorNetwork
 from dslearn.types import AGENT_DIM, StepContext, agents, safe_cholesky, symmetrize
 
 
 def _measurements_only(ep) -> None:
-    """The filter sees measurements (:class:`~dslearn.sim.scenario.Measurements`), never the truth."""
+    """The filter sees measurements (:class:`~dslearn.episodes.Measurements`), never the truth."""
     if not isinstance(ep, Measurements):
         raise TypeError(f"the filter takes Measurements (episodes.measurements), not {type(ep).__name__}")
 

@@ -1,2 +1,2 @@
-"""Fusion: consensus weights, fusion strategies (consensus and faults), aggregation of GP experts,
+"""Fusion: consensus weights, fusion strategies (consensus, and on a faulty network), aggregation of GP experts,
 consensus on sufficient statistics."""

@@ -1,22 +1,18 @@
-r"""Faults in the sensor network: link failures, node failures, time-varying topologies, outliers.
+r"""Fusion on an unreliable network: link failures, failed nodes' links, time-varying topologies.
 
-Two levels:
+:class:`FaultyFusion` wraps any :class:`~dslearn.fusion.strategies.Fusion`. At every filter step it
+draws the *live graph* of every episode from a seeded ``torch.Generator``: each link of the nominal
+graph is up with probability ``1 - p_link`` (independently per step and episode: a time-varying
+topology), and links of failed nodes are down. Consensus then uses only the messages that arrive:
+the weights are recomputed on the live graph (Metropolis :math:`w_{ij} = 1/(1+\max(d_i, d_j))` by
+default, or the paper's uniform :math:`1/(|N_i|+1)`), one ``(B, S, S)`` matrix per episode and step,
+and ``L`` rounds are ``W^L`` (batched ``matrix_power``). A node without live links keeps its own
+belief (:math:`w_{ii} = 1`). Individual and centralised fusion do not exchange messages and ignore
+the graph (centralised stays the all-measurements reference).
 
-* **communication** — :class:`FaultyFusion` wraps any :class:`~dslearn.fusion.strategies.Fusion`.
-  At every filter step it draws the *live graph* of every episode from a seeded
-  ``torch.Generator``: each link of the nominal graph is up with probability ``1 - p_link``
-  (independently per step and episode: a time-varying topology), and links of failed nodes are
-  down. Consensus then uses only the messages that arrive: the weights are recomputed on the
-  live graph (Metropolis :math:`w_{ij} = 1/(1+\max(d_i, d_j))` by default, or the paper's
-  uniform :math:`1/(|N_i|+1)`), one ``(B, S, S)`` matrix per episode and step, and ``L`` rounds are
-  ``W^L`` (batched ``matrix_power``). A node without live links keeps its own belief
-  (:math:`w_{ii} = 1`). Individual and centralised fusion do not exchange messages and ignore
-  the graph (centralised stays the all-measurements reference).
-* **data** — :func:`node_failure_schedule` draws which nodes fail when (a stretch of
-  ``duration`` steps, or for good), :func:`apply_node_failures` removes a failed node's
-  measurements (``visible`` masked), and :func:`add_outliers` replaces a fraction of the
-  measurements by gross errors. The robust update is chi-square gating on the innovation
-  (``novel_information(..., gate_prob=p)``, passed through ``track(..., gate_prob=p)``).
+The faults of the data (which nodes fail when, their lost measurements, gross outliers) are drawn
+on the episodes by :mod:`dslearn.sim.faults`; the robust update is chi-square gating on the
+innovation (``novel_information(..., gate_prob=p)``, passed through ``track(..., gate_prob=p)``).
 
 Everything is vectorised over episodes and nodes and reproducible from the seeds. Every draw
 takes a ``torch.Generator`` or per-episode :class:`~dslearn.streams.Streams` over ``(B,)``; with
@@ -28,13 +24,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from dslearn.fusion.strategies import Fusion
 from dslearn.errors import ConfigError, check_choice
-from dslearn.sim.scenario import Episodes
-from dslearn.streams import Streams, rand, randn
+from dslearn.fusion.strategies import Fusion
+from dslearn.streams import Streams, rand
 
 LIVE_WEIGHTS = ("metropolis", "uniform")
-NODE_FAIL_MODES = ("permanent", "transient")
 
 
 def live_weights(live: Tensor, method: str = "metropolis") -> Tensor:
@@ -148,63 +142,3 @@ class FaultyFusion:
         w = live_weights(live, self.method)
         wl = torch.linalg.matrix_power(w, self.base.iterations)
         return self.base(q_pred, o_pred, dq, do, wl=wl.to(q_pred))
-
-
-def node_failure_schedule(
-    num_nodes: int,
-    batch: int,
-    steps: int,
-    frac: float,
-    gen: torch.Generator | Streams,
-    mode: str = "permanent",
-    duration: int = 4,
-) -> Tensor:
-    """Which node is alive when: ``(S, B, K+1)`` bool.
-
-    In each episode ``round(frac * S)`` distinct nodes (chosen at random) fail at a step drawn
-    uniformly in ``1..K``: for good (``permanent``) or for ``duration`` steps (``transient``).
-    Every node is alive at ``t = 0``.
-    """
-    if not 0.0 <= float(frac) <= 1.0:
-        raise ConfigError(f"faults.node_fail={frac!r} must be a fraction in [0, 1]")
-    check_choice("faults.node_fail_mode", mode, NODE_FAIL_MODES)
-    if int(duration) < 1:
-        raise ConfigError(f"faults.node_fail_duration={duration!r} must be >= 1 step")
-    n_fail = int(round(frac * num_nodes))
-    alive = torch.ones(num_nodes, batch, steps + 1, dtype=torch.bool)
-    if n_fail == 0 or steps < 1:
-        return alive
-    order = rand((batch, num_nodes), gen).argsort(-1)  # random permutation per episode
-    failed = torch.zeros(batch, num_nodes, dtype=torch.bool)
-    failed.scatter_(1, order[:, :n_fail], True)
-    start = 1 + (rand((batch, num_nodes), gen) * steps).long().clamp_max(steps - 1)  # uniform in 1..K
-    t = torch.arange(steps + 1).view(1, 1, -1)
-    down = t >= start.unsqueeze(-1)
-    if mode == "transient":
-        down = down & (t < (start + int(duration)).unsqueeze(-1))
-    down = down & failed.unsqueeze(-1)  # (B, S, K+1)
-    return ~down.permute(1, 0, 2)
-
-
-def apply_node_failures(ep: Episodes, alive: Tensor) -> Episodes:
-    """A failed node measures nothing: ``visible &= alive`` (``alive (S, B, K+1)``)."""
-    vis = ep.visible & alive.to(ep.visible.device).unsqueeze(-1)
-    return Episodes(ep.states, torch.where(vis.unsqueeze(-1), ep.meas, torch.zeros_like(ep.meas)), vis)
-
-
-def add_outliers(ep: Episodes, frac: float, std: float, gen: torch.Generator | Streams) -> tuple[Episodes, Tensor]:
-    """Replace a fraction ``frac`` of the measurements by gross errors ``z + N(0, std^2 I)``.
-
-    Returns the new episodes and the ``(S, B, K+1, A)`` bool mask of corrupted measurements.
-    """
-    if not 0.0 <= float(frac) <= 1.0:
-        raise ConfigError(f"faults.outlier_frac={frac!r} must be a fraction in [0, 1]")
-    if frac > 0 and not float(std) > 0:
-        raise ConfigError(f"faults.outlier_std={std!r} must be > 0")
-    s, b = ep.visible.shape[:2]
-    rest = tuple(ep.visible.shape[2:])
-    # drawn episode-first (one stream per episode), then nodes first like the episodes
-    hit = (rand((b, s, *rest), gen) < frac).transpose(0, 1).to(ep.visible.device) & ep.visible
-    noise = randn((b, s, *rest, 2), gen).transpose(0, 1).to(ep.meas) * float(std)
-    meas = ep.meas + noise * hit.unsqueeze(-1)
-    return Episodes(ep.states, meas, ep.visible), hit

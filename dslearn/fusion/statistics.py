@@ -22,7 +22,7 @@ from torch import Tensor
 
 from dslearn.errors import ConfigError
 from dslearn.fusion.weights import half_max_degree, max_degree, metropolis
-from dslearn.sim.network import adjacency_from_edges, is_connected
+from dslearn.network import adjacency_from_edges, is_connected
 
 #: ``task.consensus.weights`` of the Braga study -> rule (``matrix``: the explicit ``task.consensus.matrix``).
 #: ``half_max_degree`` is the paper's Eq. (26), 1/(2 d_max); ``max_degree_core`` is 1/(1 + d_max)

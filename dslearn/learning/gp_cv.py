@@ -1,7 +1,7 @@
 """The GP motion model with a constant-velocity prior mean (``conf/model/gp_cv.yaml``).
 
 The GP learns the deviation of the one-step transition from constant velocity
-(:class:`~dslearn.learning.means.ConstantVelocityMean`), so far from its data it falls back to
+(:class:`~dslearn.models.gp_backends.means.ConstantVelocityMean`), so far from its data it falls back to
 LIN instead of to "stand still" (identity mean) or to the origin (zero mean). The mean's step is
 the scenario's ``dt``; every other key is the GP's (:class:`~dslearn.models.gp.GPMotionModel`).
 """
@@ -9,8 +9,8 @@ the scenario's ``dt``; every other key is the GP's (:class:`~dslearn.models.gp.G
 from __future__ import annotations
 
 from dslearn.errors import ConfigError
-from dslearn.learning.means import ConstantVelocityMean
 from dslearn.models.gp import GPMotionModel
+from dslearn.models.gp_backends import ConstantVelocityMean
 
 
 def gp_cv_for_scenario(*, scenario, num_nodes: int, dtype, device, mean=None, **keys) -> GPMotionModel:

@@ -8,8 +8,8 @@ import torch
 from torch import Tensor
 
 from dslearn.data.window_tensors import per_agent
-from dslearn.forecast import lstm_predict
-from dslearn.models.lstm import SocialLSTM, episode_windows, holdout_split, schedule_from_config, train_lstm
+from dslearn.models.lstm import (SocialLSTM, episode_windows, holdout_split, lstm_predict, schedule_from_config,
+                                 train_lstm)
 
 #: the network keys of a ``task.lstm`` / ``lstm`` block (the rest is the schedule)
 NETWORK_KEYS = ("embed", "hidden", "obs_len", "pred_len", "pooling", "grid", "neighbourhood")

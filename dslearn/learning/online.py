@@ -16,8 +16,8 @@ from typing import Any, Callable
 import pandas as pd
 import torch
 
+from dslearn.episodes import Measurements
 from dslearn.filters.distributed import TrackResult, track
-from dslearn.sim.scenario import Measurements
 
 
 @dataclass

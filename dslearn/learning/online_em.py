@@ -11,7 +11,8 @@ All strategies of one Monte Carlo run see the same truth and measurements (commo
 :func:`run_tbn` sees only the measurements (and the initial state, known in the paper's Section VI);
 :func:`score_tbn` computes the errors against the truth. The Monte Carlo harness of the study
 (:func:`tbn_params`, :func:`prepare_job`, :func:`simulate_and_filter`) builds the terrain, the models
-and each batch's flights from a checked ``braga_tbn`` configuration (:mod:`dslearn.schemas.braga_tbn`).
+and each batch's flights from the plain values of a checked ``braga_tbn`` task (:mod:`dslearn.schemas.braga_tbn`;
+the study converts its configuration, :func:`dslearn.studies.braga_tbn.job_from_config`).
 """
 
 from __future__ import annotations
@@ -19,14 +20,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import torch
-from omegaconf import OmegaConf
 from torch import Tensor
 
 from dslearn.errors import ConfigError
-from dslearn.filters.rbpf import LinearGaussianDynamics, ess, init_state, posterior_mean, rbpf_step
+from dslearn.filters.rbpf import ess, init_state, posterior_mean, rbpf_step
 from dslearn.fusion.statistics import (combination_matrices, network_adjacency, parse_strategy,
                                        throughput_bytes_per_step, weight_matrix)
 from dslearn.models.jmnls import NoiseParams, m_step, make_params, params_dim, stats_dim
+from dslearn.models.linear_gaussian import LinearGaussianDynamics
 from dslearn.sim.terrain import Scenario, cv_model, make_terrain, simulate
 from dslearn.streams import Streams
 
@@ -172,9 +173,12 @@ def score_tbn(res: TBNResult, scn: Scenario) -> TBNResult:
 KERNEL_DTYPES = {None: None, "float32": torch.float32, "float64": torch.float64}
 
 
-def tbn_params(task) -> dict:
-    """Plain values and built objects (true / initial parameters, graph, weights) of a checked ``cfg.task``."""
-    t = OmegaConf.to_container(task, resolve=True)
+def tbn_params(task: dict) -> dict:
+    """Plain values and built objects (true / initial parameters, graph, weights) of a checked ``braga_tbn``
+    task given as plain values (nested dicts, lists and numbers, resolved: the caller converts its configuration)."""
+    if not isinstance(task, dict):
+        raise TypeError(f"tbn_params takes the task as a plain dict, not {type(task).__name__}")
+    t = task
     p = {k: t[k] for k in ("mc_runs", "mc_batch", "num_particles", "steps", "workers", "strategies",
                            "bytes_per_float", "kilobyte", "filter_streams", "record_every")}
     for k in ("dt", "process_noise", "formation_spacing", "steady_state_s", "truth_process_noise", "lost_track_m",
@@ -198,15 +202,16 @@ def tbn_params(task) -> dict:
     return p
 
 
-def prepare_job(cfg) -> dict:
+def prepare_job(task: dict, *, seed: int, device: str, dtype: str, progress: bool = False) -> dict:
     """Everything the Monte Carlo batches share (terrain, models, recording grid, throughput) from a checked
-    configuration (root ``seed``/``device``/``dtype``/``progress`` and ``task``)."""
-    p = tbn_params(cfg.task)
-    device = torch.device(str(cfg.device))
+    task as plain values (:func:`tbn_params`), the run's ``seed``, ``device``, ``dtype`` (``float64`` or
+    ``float32``) and whether to show progress."""
+    p = tbn_params(task)
+    device = torch.device(str(device))
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device=cuda but CUDA is not available")
-    dtype = {"float64": torch.float64, "float32": torch.float32}[str(cfg.dtype)]
-    seed, progress = int(cfg.seed), bool(cfg.get("progress") or False)
+    dtype = {"float64": torch.float64, "float32": torch.float32}[str(dtype)]
+    seed, progress = int(seed), bool(progress)
     kw = dict(dtype=dtype, device=device)
     tgen = torch.Generator(device=device).manual_seed(seed * 7919 + p["terrain_seed_offset"] + 17)
     terrain = make_terrain(**p["terrain"], gen=tgen, **kw)

@@ -25,7 +25,7 @@ expert's residual *and* variance (through the weights :math:`\beta_g` and the no
 
 with :math:`\partial r_g/\partial x` the GP mean Jacobian and
 :math:`\partial\sigma_g^2/\partial x` the gradient of its latent variance, both from the node
-GPs' backend (:class:`~dslearn.models.gp_backend.GPBackend`: ``predict`` and ``variance_gradient``,
+GPs' backend (:class:`~dslearn.models.gp_backends.protocol.GPBackend`: ``predict`` and ``variance_gradient``,
 closed form for every variant: exact and window GP
 :math:`2\sum_a c_a k(x, x_a)(x - x_a)/l^2` with :math:`c = (K + \sigma_\epsilon^2 I)^{-1} k_*`, SGPR
 the same over the inducing inputs with :math:`c = (K_{uu}^{-1} - \Sigma^{-1}) k_u`, SSGP

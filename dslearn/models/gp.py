@@ -1,6 +1,6 @@
 r"""GP motion model (GP-EKF): a :class:`~dslearn.models.base.MotionModel` over one online GP
-backend per node (:mod:`dslearn.learning.gp`, :mod:`dslearn.learning.sparse`), used through the
-:class:`~dslearn.models.gp_backend.GPBackend` protocol only."""
+backend per node (:mod:`dslearn.models.gp_backends.exact`, :mod:`dslearn.models.gp_backends.sparse`),
+used through the :class:`~dslearn.models.gp_backends.protocol.GPBackend` protocol only."""
 
 from __future__ import annotations
 
@@ -8,10 +8,9 @@ import torch
 from torch import Tensor
 
 from dslearn.errors import ConfigError, check_choice
-from dslearn.learning.gp import FACTORS, OnlineGP
-from dslearn.learning.sparse import make_online_gp
 from dslearn.models.base import MotionModel
-from dslearn.models.gp_backend import GPBackend
+from dslearn.models.gp_backends import GPBackend, OnlineGP, make_online_gp
+from dslearn.models.gp_backends.exact import FACTORS
 from dslearn.types import DTYPES, StepContext
 
 NOISE_MODES = ("latent", "predictive", "adaptive")
@@ -59,7 +58,7 @@ class GPMotionModel(MotionModel):
             slope extrapolated over kilometres. Exact and window GPs; point evaluations
             (:meth:`forward`, roll-outs, sigma points) are unchanged.
         variant: ``exact`` (:class:`OnlineGP`) or a scalable variant of
-            :mod:`dslearn.learning.sparse`: ``window`` (option ``window``), ``sgpr`` (``inducing``),
+            :mod:`dslearn.models.gp_backends.sparse`: ``window`` (option ``window``), ``sgpr`` (``inducing``),
             ``ssgp`` (``features``, ``seed``); options are passed as keywords.
     """
 
@@ -119,7 +118,7 @@ class GPMotionModel(MotionModel):
         if variant == "exact" and not variant_options:
             self.gp = OnlineGP(num_nodes, state_dim, state_dim, outputscale, lengthscale, noise_std, mean, capacity, dtype, device,
                                factor_dtype=None if factor_dtype is None else DTYPES[factor_dtype], factor=factor)
-        else:  # scalable variants (dslearn.learning.sparse): window | sgpr | ssgp
+        else:  # scalable variants (dslearn.models.gp_backends.sparse): window | sgpr | ssgp
             if fit_every and variant != "exact":
                 raise ConfigError(f"model.fit_every={fit_every}: hyperparameter fitting is only available for model.variant=exact")
             self.gp = make_online_gp(
@@ -237,13 +236,13 @@ class GPMotionModel(MotionModel):
     def save(self, path) -> None:
         """Save hyperparameters and the posterior state of every node: the data set (inputs,
         residual targets, mask) for the exact and window GPs, the sufficient statistics for
-        SGPR / SSGP (the backend's :meth:`~dslearn.models.gp_backend.GPBackend.state_tensors`)."""
+        SGPR / SSGP (the backend's :meth:`~dslearn.models.gp_backends.protocol.GPBackend.state_tensors`)."""
         torch.save(self._checkpoint(**self.gp.state_tensors()), path)
 
     def load(self, path) -> "GPMotionModel":
         """Safe-load what :meth:`save` wrote; checks class, hyperparameter shapes and that the
         saved state has this model's node count, dimensions and variant (the backend's
-        :meth:`~dslearn.models.gp_backend.GPBackend.load_state_tensors`); the exact and window
+        :meth:`~dslearn.models.gp_backends.protocol.GPBackend.load_state_tensors`); the exact and window
         GPs factorise once, with the loaded hyperparameters. A refused file leaves the model as it was."""
         names = tuple(self.gp.state_tensors())
         blob = self._read_checkpoint(path, extra=names)

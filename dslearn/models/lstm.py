@@ -547,6 +547,21 @@ def evaluate_loss(model: SocialLSTM, windows: Tensor, batch_size: int = 256) -> 
     return tot / max(cnt, 1)
 
 
+@torch.no_grad()
+def lstm_predict(model: SocialLSTM, obs: Tensor, batch: int = 64) -> Tensor:
+    """``(N, T_obs, A, 2)`` windows -> ``(N, pred_len, A, 2)`` in batches (trimmed padding)."""
+    outs = []
+    for i in range(0, obs.shape[0], batch):
+        o = obs[i : i + batch]
+        present = torch.isfinite(o).all(-1).all(1).any(0)
+        k = int(present.nonzero().max()) + 1 if bool(present.any()) else 1  # windows are packed
+        pred = model.predict(o[:, :, :k])
+        full = torch.full((o.shape[0], pred.shape[1], o.shape[2], 2), float("nan"), dtype=o.dtype)
+        full[:, :, :k] = pred
+        outs.append(full)
+    return torch.cat(outs, 0)
+
+
 SCHEDULES = ("fixed", "early_stopping")
 #: the offline fit's settings of a ``model`` option and their defaults (:meth:`SocialLSTM.configure_offline`)
 OFFLINE_DEFAULTS = {"schedule": "fixed", "epochs": 50, "batch_size": 8, "lr": 1e-3, "patience": 10, "min_delta": 0.0,

@@ -8,8 +8,7 @@ from torch import Tensor
 from dslearn.errors import check_choice, check_positive
 from dslearn.types import AGENT_DIM
 from dslearn.models.base import ObservationModel
-from dslearn.models.gp_backend import GPBackend
-from dslearn.learning.gp import OnlineGP
+from dslearn.models.gp_backends import GPBackend, OnlineGP
 
 
 class LinearPositionObservation(ObservationModel):

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from dslearn.data.datasets import run_labels
 from dslearn.reports.tables import save_figure
+from dslearn.schemas.datasets import run_labels
 
 log = logging.getLogger(__name__)
 

@@ -200,7 +200,7 @@ def real_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> 
 def report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> str:
     """Tables III–IV analogue (Markdown + CSV), Fig. 4 and Fig. 5 analogues (PNG); the data sets
     are shown by their labels (``task.datasets.<name>.label`` in the runs' ``config.yaml``)."""
-    from dslearn.data.datasets import run_labels
+    from dslearn.schemas.datasets import run_labels
 
     labels = run_labels(out_dir)
     if "scene" in results.columns:

@@ -143,7 +143,7 @@ class ModelSchema(PartSchema):
     factor_dtype: Optional[str] = None  # exact GP: null (the run's dtype) | float32 (the Cholesky factor)
     factor: Optional[str] = None  # exact GP: auto | inverse | cholesky (what the factor buffer holds)
     inputs: Optional[str] = None  # exact / window GP: mean (linearised at the mean) | belief (averaged over N(y, P))
-    # scalable variants (dslearn.learning.sparse)
+    # scalable variants (dslearn.models.gp_backends.sparse)
     variant: Optional[str] = None
     window: Optional[int] = None
     inducing: Optional[int] = None
@@ -524,7 +524,7 @@ def validate_core(cfg: DictConfig) -> None:
     if m.factor_dtype is not None:
         check_choice("model.factor_dtype", m.factor_dtype, ("float64", "float32"))
     if m.factor is not None:
-        from dslearn.learning.gp import FACTORS
+        from dslearn.models.gp_backends.exact import FACTORS
 
         check_choice("model.factor", m.factor, FACTORS)
     if m.train_on is not None:

@@ -8,9 +8,10 @@ from typing import Dict, List, Optional
 import torch
 from omegaconf import DictConfig
 
-from dslearn.data.datasets import DatasetSchema, FoldsSchema, check_dataset, check_scene_names
+from dslearn.data.datasets import check_dataset
 from dslearn.errors import ConfigError, check_choice
 from dslearn.schemas.base import ranged, register_task
+from dslearn.schemas.datasets import DatasetSchema, FoldsSchema, check_scene_names
 
 PREDICTORS = ("cv", "lstm", "social_lstm", "gp", "gp_state")
 CONVENTIONS = ("benchmark", "physical")

@@ -7,9 +7,9 @@ from typing import Any, Dict, List, Optional
 
 from omegaconf import DictConfig
 
-from dslearn.data.datasets import DatasetSchema, FoldsSchema, check_scene_names
 from dslearn.errors import ConfigError, check_choice
 from dslearn.schemas.base import ranged, register_task
+from dslearn.schemas.datasets import DatasetSchema, FoldsSchema, check_scene_names
 from dslearn.schemas.ethucy_forecast import check_datasets, check_device
 
 PROTOCOLS = ("tables", "data_size")

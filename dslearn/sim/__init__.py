@@ -1,1 +1,1 @@
-"""Simulation: scenarios, ground truth, sensors and the communication network."""
+"""Simulation: scenarios, ground truth, sensors, placing the communication network, faults drawn on episodes."""

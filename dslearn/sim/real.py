@@ -6,7 +6,7 @@ place ``S`` sensors around the scene's extent (the bounding box of every positio
 scene): on the ellipse through the midpoints of the box's sides, enlarged by ``margin``
 (relative), at angles :math:`-\pi/2 + 2\pi i / S` (so ``S = 4`` puts one sensor at the middle
 of each side, bottom first, counter-clockwise). The graph links each sensor to its
-``k_nearest`` nearest sensors (symmetrised), through :func:`dslearn.sim.network.make_network`.
+``k_nearest`` nearest sensors (symmetrised), through :func:`dslearn.sim.placement.make_network`.
 A sensor measures a pedestrian only within ``sensing_range``: ``z = p + ν``, ``ν ~ N(0, σ_ν² I)``.
 """
 
@@ -22,9 +22,11 @@ import torch
 from torch import Tensor
 
 from dslearn.data.episodes import extract_episodes, split_episodes
+from dslearn.episodes import Episodes
 from dslearn.errors import ConfigError, check_positive
-from dslearn.sim.network import SensorNetwork, make_network
-from dslearn.sim.scenario import Episodes, episode_streams, measure
+from dslearn.network import SensorNetwork
+from dslearn.sim.placement import make_network
+from dslearn.sim.scenario import episode_streams, measure
 from dslearn.types import StepContext
 
 

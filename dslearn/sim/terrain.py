@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from dslearn.filters.rbpf import LinearGaussianDynamics
 from dslearn.models.jmnls import NoiseParams, simulate_modes
+from dslearn.models.linear_gaussian import LinearGaussianDynamics
 from dslearn.streams import Streams, randn
 
 

@@ -31,10 +31,17 @@ import warnings
 
 import pandas as pd
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from dslearn.fusion.statistics import parse_strategy
 from dslearn.learning.online_em import prepare_job, simulate_and_filter
+
+
+def job_from_config(cfg: DictConfig) -> dict:
+    """The Monte Carlo job (:func:`dslearn.learning.online_em.prepare_job`) of a checked configuration: its
+    ``task`` as plain values with the root ``seed``, ``device``, ``dtype`` and ``progress``."""
+    return prepare_job(OmegaConf.to_container(cfg.task, resolve=True), seed=int(cfg.seed), device=str(cfg.device),
+                       dtype=str(cfg.dtype), progress=bool(cfg.get("progress") or False))
 
 
 def _worker_init() -> None:
@@ -100,7 +107,7 @@ def _run_batch(job: dict, c0: int, nr: int) -> list[dict]:
 
 def run(cfg: DictConfig) -> pd.DataFrame:
     """Run the study (see module docstring). Returns the tidy results table."""
-    job = prepare_job(cfg)
+    job = job_from_config(cfg)
     p, device = job["p"], torch.device(job["device"])
     frames = []
     t_start = time.perf_counter()

@@ -48,15 +48,16 @@ from torch import Tensor
 from dslearn.compose import (build_fusion, build_motion_model, build_network, build_observation, build_predict,
                              build_scenario, group_options, resolve_dtype)
 from dslearn.data.datasets import load_dataset, task_datasets
+from dslearn.episodes import Episodes, Measurements
 from dslearn.filters.distributed import initial_belief, track
 from dslearn.fusion.strategies import ConsensusOnMeasurements, Fusion
 from dslearn.learning.online import OnlineLearner
 from dslearn.metrics import metric_rows, prediction_error, tracking_metrics
 from dslearn.models import ConstantVelocity, LinearPositionObservation
 from dslearn.models.base import MotionModel
-from dslearn.sim.network import SensorNetwork
+from dslearn.network import SensorNetwork
 from dslearn.sim.real import Data, real_source
-from dslearn.sim.scenario import Episodes, Measurements, sample_split
+from dslearn.sim.scenario import sample_split
 from dslearn.types import POS, agents, safe_cholesky
 
 log = logging.getLogger(__name__)

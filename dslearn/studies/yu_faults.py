@@ -6,7 +6,8 @@ plus gross measurement outliers with and without chi-square gating. Faults act i
 in test: the GP is learned online through the faulty network.
 
 The parts come from the config groups (:mod:`dslearn.compose`; the grid's models and fusions are
-options of the ``model`` and ``consensus`` groups); faults come from :mod:`dslearn.fusion.faults`. All cells of one fault
+options of the ``model`` and ``consensus`` groups); the faults of the data come from
+:mod:`dslearn.sim.faults`, those of the links from :mod:`dslearn.fusion.faults`. All cells of one fault
 setting share the same episodes, node-failure schedule, outliers and link-failure draws
 (common random numbers), so differences between fusions and models are not sampling noise.
 
@@ -27,9 +28,10 @@ from dslearn.compose import build_fusion, build_motion_model, build_network, bui
 from dslearn.compose import build_scenario, group_options, resolve_device, resolve_dtype
 from dslearn.filters.distributed import initial_belief
 from dslearn.diagnostics import Diagnostics
-from dslearn.fusion.faults import FaultyFusion, add_outliers, apply_node_failures, node_failure_schedule
+from dslearn.fusion.faults import FaultyFusion
 from dslearn.learning.online import OnlineLearner
 from dslearn.metrics import tracking_metrics
+from dslearn.sim.faults import add_outliers, apply_node_failures, node_failure_schedule
 from dslearn.sim.scenario import episode_streams
 from dslearn.streams import Streams
 from dslearn.studies.yu import check_offline, offline_trajectories

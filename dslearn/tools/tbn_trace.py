@@ -16,8 +16,9 @@ import time
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from dslearn.learning.online_em import prepare_job, simulate_and_filter, tbn_params
+from dslearn.learning.online_em import simulate_and_filter, tbn_params
 from dslearn.sim.terrain import terrain_gradient
+from dslearn.studies.braga_tbn import job_from_config
 
 
 def compose_cfg(overrides: list[str] = ()) -> DictConfig:
@@ -35,18 +36,23 @@ def compose_cfg(overrides: list[str] = ()) -> DictConfig:
     return cfg
 
 
+def _params(cfg: DictConfig) -> dict:
+    """:func:`dslearn.learning.online_em.tbn_params` of the configuration's task."""
+    return tbn_params(OmegaConf.to_container(cfg.task, resolve=True))
+
+
 def trace_runs(cfg: DictConfig, episodes, diagnostics: bool = True, nodes: list[int] | None = None):
     """Simulate and filter the given Monte Carlo runs (any subset, any order: each run's result depends only on
     (seed, run index, strategy)) and return ``(scenario, TBNResult)`` with the per-step diagnostics of
     :func:`dslearn.learning.online_em.run_tbn` (ESS, particle spread, velocity error, ...) for lost-track analysis.
     ``nodes``: filter only these aircraft (noncooperative only); the scenario is restricted to them."""
-    return simulate_and_filter(prepare_job(cfg), list(episodes), diagnostics=diagnostics, nodes=nodes)
+    return simulate_and_filter(job_from_config(cfg), list(episodes), diagnostics=diagnostics, nodes=nodes)
 
 
 def _screen_chunk(cfg_yaml: str, episodes: list[int], nodes: list[int] | None) -> list[tuple]:
     torch.set_num_threads(1)
     cfg = OmegaConf.create(cfg_yaml)
-    job = prepare_job(cfg)
+    job = job_from_config(cfg)
     p, truth = job["p"], job["truth"]
     scn, res = simulate_and_filter(job, episodes, nodes=nodes)
     n_ss = max(1, int(round(p["steady_state_s"] / p["dt"])))
@@ -63,7 +69,7 @@ def _screen_chunk(cfg_yaml: str, episodes: list[int], nodes: list[int] | None) -
 def screen_lost_tracks(cfg: DictConfig, episodes, nodes: list[int] | None = None, chunk: int = 10) -> list[tuple]:
     """Per-node steady-state position RMS, largest position error and mu RMS of many runs, in ``task.workers``
     processes (chunks of ``chunk`` runs). Returns ``(episode, strategy, node_rms, err_max, mu_rms)`` tuples."""
-    p = tbn_params(cfg.task)
+    p = _params(cfg)
     episodes = list(episodes)
     chunks = [episodes[i:i + chunk] for i in range(0, len(episodes), chunk)]
     text = OmegaConf.to_yaml(cfg, resolve=True)
@@ -100,9 +106,9 @@ def benchmark(steps: int = 200, mc_batch: int = 1, num_particles: int = 300, dev
     if strategies is not None:
         over.append(f"task.strategies=[{','.join(strategies)}]")
     cfg = compose_cfg(over)
-    p = tbn_params(cfg.task)
+    p = _params(cfg)
     t0 = time.perf_counter()
-    job = prepare_job(cfg)
+    job = job_from_config(cfg)
     clock = {}
     orig = _tbn.rbpf_step
 
@@ -142,7 +148,7 @@ def _episodes(text: str) -> list[int]:
 
 def _trace_report(cfg: DictConfig, episodes: list[int], nodes: list[int] | None, show: list[int] | None) -> str:
     """Per-node summary and, for lost nodes (or ``show``), a time table of the diagnostics."""
-    p = tbn_params(cfg.task)
+    p = _params(cfg)
     scn, res = trace_runs(cfg, episodes, nodes=nodes)
     dg, grad = res.diagnostics, terrain_gradient(scn)
     n_ss = max(1, int(round(p["steady_state_s"] / p["dt"])))
@@ -180,7 +186,7 @@ def _trace_report(cfg: DictConfig, episodes: list[int], nodes: list[int] | None,
 
 
 def _screen_report(cfg: DictConfig, episodes: list[int], nodes: list[int] | None) -> str:
-    p = tbn_params(cfg.task)
+    p = _params(cfg)
     rows = screen_lost_tracks(cfg, episodes, nodes=nodes)
     lines = []
     for sname in p["strategies"]:

@@ -6,8 +6,8 @@ the aggregated GP (:class:`~dslearn.models.aggregated.AggregatedGPMotion`) and t
 model (:class:`~dslearn.models.observation.GPObservation`) use a backend through this protocol
 only: no ``hasattr`` probing, no test of the backend's class, no reading of its buffers.
 
-The backends: the exact online GP (:class:`dslearn.learning.gp.OnlineGP`) and the scalable
-variants of :mod:`dslearn.learning.sparse` (``WindowGP``, ``SGPR``, ``SSGP``). Shapes: queries
+The backends: the exact online GP (:class:`dslearn.models.gp_backends.exact.OnlineGP`) and the scalable
+variants of :mod:`dslearn.models.gp_backends.sparse` (``WindowGP``, ``SGPR``, ``SSGP``). Shapes: queries
 ``(S, N, Din)`` (node dimension first), means ``(S, N, Dy)``, latent variances ``(S, N)`` (shared
 by every output), mean Jacobians ``(S, N, Dy, Din)``.
 """

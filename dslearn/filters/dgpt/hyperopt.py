@@ -73,10 +73,10 @@ def values(theta: Tensor) -> Tensor:
 
 
 def to_hypers(theta: Tensor):
-    """A GPyTorch :class:`~dslearn.learning.experts.Hypers` holding ``theta`` (batch shape
+    """A GPyTorch :class:`~dslearn.filters.dgpt.experts.Hypers` holding ``theta`` (batch shape
     ``theta.shape[:-1] + (1,)``, noise constraint ``Positive`` with ``exp``); used by the tests
     to check against GPyTorch."""
-    from dslearn.learning.experts import Hypers
+    from dslearn.filters.dgpt.experts import Hypers
 
     d = theta.shape[-1] - 2
     hyp = Hypers(tuple(theta.shape[:-1]) + (1,), d, 1.0, [1.0] * d, 1.0, 0.0,

@@ -1,6 +1,6 @@
 r"""Prior means of the GP backends as modules: :math:`m(x)` and its Jacobian.
 
-A backend (:class:`~dslearn.learning.gp.OnlineGP`, the sparse variants) takes ``mean=`` as a
+A backend (:class:`~dslearn.models.gp_backends.exact.OnlineGP`, the sparse variants) takes ``mean=`` as a
 name (``zero``, ``identity``, ``constant``: the last one is learned with the kernel by
 ``fit``) or as one of these modules, e.g. ``ConstantVelocityMean(dt)``. Shapes
 ``(S, N, Dx) -> (S, N, Dy)`` and ``(S, N, Dy, Dx)``.

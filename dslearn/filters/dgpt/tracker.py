@@ -18,7 +18,7 @@ Per time step ``k`` (``dt`` = 1 step):
    trust-region Newton (``optimizer="newton"``) or by a fixed number of Adam/SGD steps; the
    centralised GP does the same with Eq. 14 on the union of all windows. Every (episode,
    pipeline, coordinate) is its own problem with its own optimiser state and iteration count
-   (:mod:`dslearn.learning.hyperopt`), so an episode's result does not depend on the other
+   (:mod:`dslearn.filters.dgpt.hyperopt`), so an episode's result does not depend on the other
    episodes of its batch;
 4. the *updated* estimate of step ``k`` (test input ``t = k``) and the *predictive* estimate of
    step ``k + 1`` (test input ``t = k + 1``) are aggregated (Eqs. 9-13), with the Theorem 1 bound.
@@ -37,8 +37,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from dslearn.fusion.aggregation import aggregate, aggregate_grbcm, ucb_bound, ucb_bound_grbcm
-from dslearn.learning.hyperopt import (
+from dslearn.filters.dgpt.hyperopt import (
     ElementwiseAdam,
     Posterior,
     SolveInfo,
@@ -50,6 +49,7 @@ from dslearn.learning.hyperopt import (
     unpack,
     values,
 )
+from dslearn.fusion.aggregation import aggregate, aggregate_grbcm, ucb_bound, ucb_bound_grbcm
 
 GP_INPUTS = ("temporal", "spatiotemporal")
 OPTIMISERS = ("newton", "adam", "sgd")
@@ -66,7 +66,7 @@ class HyperConfig:
     each problem to 1e-8 from the learned point (not used by the tracker) and record how far
     below that maximum the learned hyperparameters are (diagnostic; costs a Newton solve).
     Both keep the log-hyperparameters in the box ``[min_*, max_*]`` (noise variance,
-    outputscale [m^2], length scales [s or m]; :func:`dslearn.learning.hyperopt.bounds`).
+    outputscale [m^2], length scales [s or m]; :func:`dslearn.filters.dgpt.hyperopt.bounds`).
     """
 
     optimizer: str = "adam"

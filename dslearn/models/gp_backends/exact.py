@@ -22,10 +22,10 @@ import gpytorch
 import torch
 from torch import Tensor, nn
 
-from dslearn.learning import inverse_factor
-from dslearn.learning.means import NAMED, PriorMeanModule
-from dslearn.errors import ConfigError, check_choice, check_positive
 from dslearn.diagnostics import record_jitter
+from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.models.gp_backends import inverse_factor
+from dslearn.models.gp_backends.means import NAMED, PriorMeanModule
 from dslearn.types import StepContext, safe_cholesky
 
 MEANS = ("zero", "constant", "identity")
@@ -45,7 +45,7 @@ def _same_input(a: Tensor, b: Tensor, version: int) -> bool:
 
 class PriorMean:
     """The prior mean m(x) and its Jacobian for GP backends: a module of
-    :mod:`dslearn.learning.means` (``self.mean_module``), or the backend's own learned constant
+    :mod:`dslearn.models.gp_backends.means` (``self.mean_module``), or the backend's own learned constant
     (``mean_type == "constant"``, the parameter ``constant``). Shapes ``(S, N, d) -> (S, N, Dy)``
     and ``(S, N, Dy, d)``."""
 
@@ -55,7 +55,7 @@ class PriorMean:
     mean_module: PriorMeanModule | None
 
     def _set_mean(self, mean) -> None:
-        """``mean``: a name in :data:`MEANS` or a :class:`~dslearn.learning.means.PriorMeanModule`."""
+        """``mean``: a name in :data:`MEANS` or a :class:`~dslearn.models.gp_backends.means.PriorMeanModule`."""
         if isinstance(mean, PriorMeanModule):
             self.mean_type, module = mean.name, mean
         else:
@@ -90,7 +90,7 @@ class OnlineGP(PriorMean, nn.Module):
         noise_std: :math:`\sigma_\epsilon` (> 0).
         mean: prior mean: ``zero``; ``constant`` (learned by :meth:`fit`); ``identity``
             (``m(x) = x[..., :Dy]``, so the GP learns the increment); or a module of
-            :mod:`dslearn.learning.means` (e.g. ``ConstantVelocityMean(dt)``).
+            :mod:`dslearn.models.gp_backends.means` (e.g. ``ConstantVelocityMean(dt)``).
         capacity: initial buffer size (grows in chunks of 128 rows with the Cholesky factor, by
             half with the inverse one; :meth:`reserve` allocates a known total at once).
         factor_dtype: storage of the factor (default ``dtype``). ``torch.float32`` halves
@@ -101,12 +101,12 @@ class OnlineGP(PriorMean, nn.Module):
             :math:`K + \sigma^2 I`; a prediction and the append after it cost a forward and a
             backward triangular solve, two passes over the factor. ``inverse``: :math:`L^{-1}`,
             extended by one row per append; the same step is one pass
-            (:mod:`dslearn.learning.inverse_factor`). ``auto`` (default): ``inverse`` on the CPU
+            (:mod:`dslearn.models.gp_backends.inverse_factor`). ``auto`` (default): ``inverse`` on the CPU
             where its compiled kernel is available, ``cholesky`` otherwise (CUDA, whose path
             was measured with the solves).
     """
 
-    #: :class:`~dslearn.models.gp_backend.GPBackend` capabilities: :meth:`predict_belief` is closed
+    #: :class:`~dslearn.models.gp_backends.protocol.GPBackend` capabilities: :meth:`predict_belief` is closed
     #: form; one point per node per append, so :meth:`reserve` can allocate the buffers at once
     supports_belief = True
     grows_per_append = True

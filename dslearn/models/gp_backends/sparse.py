@@ -1,5 +1,6 @@
 r"""Scalable online GP variants behind the GP backend protocol of the exact
-:class:`~dslearn.learning.gp.OnlineGP` (:class:`dslearn.models.gp_backend.GPBackend`).
+:class:`~dslearn.models.gp_backends.exact.OnlineGP`
+(:class:`dslearn.models.gp_backends.protocol.GPBackend`).
 
 All three keep ``S`` independent per-node models (one data set per sensor node) with one
 RBF kernel shared by the ``Dy`` outputs, and give every method of the protocol: ``append(x, y,
@@ -31,7 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from dslearn.errors import ConfigError, check_choice, check_positive
-from dslearn.learning.gp import MEANS, OnlineGP, PriorMean
+from dslearn.models.gp_backends.exact import MEANS, OnlineGP, PriorMean
 
 
 def chol_update(L: Tensor, v: Tensor) -> Tensor:
@@ -134,7 +135,7 @@ class WindowGP(OnlineGP):
 
 # ------------------------------------------------------------------------------------------
 class _SparseBase(PriorMean, nn.Module):
-    #: :class:`~dslearn.models.gp_backend.GPBackend` capabilities: no belief-averaged prediction;
+    #: :class:`~dslearn.models.gp_backends.protocol.GPBackend` capabilities: no belief-averaged prediction;
     #: fixed-size statistics (nothing grows with the data, :meth:`reserve` has nothing to do)
     supports_belief = False
     grows_per_append = False
