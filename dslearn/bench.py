@@ -115,12 +115,12 @@ def item_reference(model: str, fusion: str, train: int, test: int, device: str =
     their rows compared (:func:`dslearn.reference.compare_results`: ``max_diff`` against
     :data:`dslearn.reference.REFERENCE_TOL`, ``worst`` names the row)."""
     from dslearn.reference import REFERENCE_TOL, ReferenceYu, compare_results
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
     ov = [f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}", f"data.test_episodes={test}", f"device={device}"]
     cfg = _compose(ov)
     t0 = time.perf_counter()
-    fast = YuStudy.from_config(cfg).run()
+    fast = api.build_study(cfg).run()
     t_fast = time.perf_counter() - t0
     cfg = _compose([o for o in ov if not o.startswith("device")])
     t0 = time.perf_counter()
@@ -154,12 +154,12 @@ def reference_failures(rows: list[dict]) -> list[str]:
 
 def item_protocol(model: str, fusion: str, train: int, test: int, device: str = "cpu", dtype: str = "float64",
                   workload: str = "protocol") -> list[dict]:
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
     cfg = _compose([f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}",
                     f"data.test_episodes={test}", f"device={device}", f"dtype={dtype}"])
     t0 = time.perf_counter()
-    df = YuStudy.from_config(cfg).run()
+    df = api.build_study(cfg).run()
     wall = time.perf_counter() - t0
     learn = model.startswith("gp")
     node_steps = 10 * 12 * ((train if learn else 0) + test)
@@ -177,14 +177,14 @@ def item_speed_config(train: int, test: int, model: str = "gp", fusion: str = "h
     algorithm: two triangular solves per step), and with the inverse factor in float32. Wall time
     of each run, the default's ratio to the previous release's figure, each variant's ratio to the
     default, and the largest change of any result value against the default."""
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
     rows, runs = [], {}
     full = (train, test) == (200, 50)
     for form, fd in (("auto", "float64"), ("cholesky", "float64"), ("auto", "float32")):
         cfg = _compose([f"model={model}", f"consensus={fusion}", f"data.train_episodes={train}",
                         f"data.test_episodes={test}", f"model.factor_dtype={fd}", f"model.factor={form}"])
-        study = YuStudy.from_config(cfg)
+        study = api.build_study(cfg)
         t0 = time.perf_counter()
         df = study.run()
         wall = time.perf_counter() - t0
@@ -334,13 +334,13 @@ def _network_cfg(nodes: int, steps: int, model: str = "gp_increment"):
 
 
 def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str = "cpu") -> list[dict]:
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
     from dslearn.filters.distributed import initial_belief, track
 
     cfg = _network_cfg(nodes, steps)
     cfg.device = device
-    study = YuStudy.from_config(cfg)
-    scenario, network, model, obs, fusion = study.build()
+    study = api.build_study(cfg)
+    scenario, network, model, obs, fusion = study.scenario, study.network, study.model, study.observation, study.fusion
     ctx = scenario.ctx()
     ep = scenario.sample(1, network, torch.Generator().manual_seed(2)).to(torch.float64, device)
     init = initial_belief(ep.measurements, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
@@ -367,7 +367,8 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
                        float(obs.noise_std) ** 2, init[0][:, 0].cpu(), init[1][:, 0].cpu(), learn=True, gate=None)
         t_ref = time.perf_counter() - t0
         part_fast = Episodes(ep.states[:, : ref_steps + 1], ep.meas[:, :, : ref_steps + 1], ep.visible[:, :, : ref_steps + 1])
-        _, network2, model2, obs2, fusion2 = study.build()
+        fresh = api.build_study(cfg)
+        network2, model2, obs2, fusion2 = fresh.network, fresh.model, fresh.observation, fresh.fusion
         t0 = time.perf_counter()
         track(part_fast.measurements, network2, model2, obs2, fusion2, ctx, init, learn=True)
         t_fast = time.perf_counter() - t0
@@ -518,13 +519,13 @@ def eta_measure(model: str = "gp_increment", episodes: int = 150) -> list[str]:
 
     from dslearn.filters.distributed import initial_belief, track as track_episode
     from dslearn.progress import episode_costs
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
     torch.set_num_threads(1)
-    study = YuStudy.from_options(model=model, consensus="hybrid", train_episodes=episodes, test_episodes=2)
-    c = study.cfg
-    scenario, network, m, obs, fusion = study.build()
-    _, train = study.sample(scenario, network, torch.float64, torch.device("cpu"))
+    c = api.compose("task=yu", f"model={model}", "consensus=hybrid", f"data.train_episodes={episodes}", "data.test_episodes=2")
+    study = api.build_study(c)
+    scenario, network, m, obs, fusion = study.scenario, study.network, study.model, study.observation, study.fusion
+    _, train = study.sample()
     ctx = scenario.ctx()
     ts = []
     for k in range(episodes):

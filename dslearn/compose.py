@@ -123,12 +123,7 @@ def build_fusion(node: Any, network, prefix: str = "consensus"):
 
 def build_predict(cfg: DictConfig):
     """The filter's prediction step (``filter.predict``: EKF linearisation or unscented)."""
-    node = cfg.filter.get("predict")
-    if node is None:
-        from dslearn.filters.information import ExtendedPredict
-
-        return ExtendedPredict()
-    return build(node, "filter.predict")
+    return build(cfg.filter.get("predict"), "filter.predict")
 
 
 def build_parts(cfg: DictConfig, model_node: Any = None) -> Parts:
@@ -160,3 +155,76 @@ def group_options(group: str, names, overrides: tuple[str, ...] = ()) -> dict[st
         return _all()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         return _all()
+
+
+# ------------------------------------------------------------------------------------------------
+# studies: components whose typed slots the composition root fills
+
+def _filter_settings(cfg: DictConfig):
+    from dslearn.filters.distributed import FilterSettings
+
+    f = cfg.filter
+    return FilterSettings(float(f.prior_pos_std), float(f.prior_vel_std),
+                          None if f.get("learn_gate_std") is None else float(f.learn_gate_std))
+
+
+def _data_settings(cfg: DictConfig):
+    from dslearn.learning.online import DataSettings
+
+    d = OmegaConf.to_container(cfg.data, resolve=True)
+    return DataSettings(**{k: d[k] for k in ("train_episodes", "test_episodes", "eval_at", "min_train_episodes")})
+
+
+class _Slots:
+    """The objects of one run, each built once on first use (the network before the models that need
+    its size; the scenario before the parts sized by it)."""
+
+    def __init__(self, cfg: DictConfig):
+        self.cfg, self._built = cfg, {}
+
+    def __getitem__(self, name: str) -> Any:
+        if name not in self._built:
+            self._built[name] = SLOTS[name](self.cfg, self)
+        return self._built[name]
+
+
+#: slot name -> how the composition root fills it from the composed configuration. A study names the
+#: slots it needs as the parameters of its constructor (a dataclass's fields); :func:`build_study`
+#: fills exactly those, so a study never reads the configuration.
+SLOTS: dict[str, Any] = {
+    "settings": lambda cfg, s: OmegaConf.to_object(cfg.task),  # the task's typed settings (its schema dataclass)
+    "seed": lambda cfg, s: int(cfg.seed),
+    "dtype": lambda cfg, s: resolve_dtype(cfg.dtype),
+    "device": lambda cfg, s: resolve_device(cfg.device),
+    "scenario": lambda cfg, s: build_scenario(cfg),
+    "network": lambda cfg, s: build_network(cfg),
+    "model": lambda cfg, s: build_motion_model(cfg.model, s["scenario"], s["network"], s["dtype"], s["device"]),
+    "model_spec": lambda cfg, s: OmegaConf.to_container(cfg.model, resolve=True),  # plain: labels, progress costs
+    "observation": lambda cfg, s: build_observation(cfg.observation, s["network"], s["dtype"], s["device"]),
+    "fusion": lambda cfg, s: build_fusion(cfg.consensus, s["network"]),
+    "predict": lambda cfg, s: build_predict(cfg),
+    "filter": lambda cfg, s: _filter_settings(cfg),
+    "data": lambda cfg, s: _data_settings(cfg),
+}
+
+
+def build_study(cfg: DictConfig) -> Any:
+    """The study of ``cfg.task`` (its ``_target_``, a class registered with the task's schema), its
+    slots filled with the run's built parts and typed settings (:data:`SLOTS`)."""
+    import inspect
+
+    from hydra.utils import get_object
+
+    target = str(cfg.task._target_)
+    try:
+        cls = get_object(target)
+    except Exception as e:  # noqa: BLE001
+        raise ConfigError(f"task._target_={target!r} cannot be imported: {str(e).splitlines()[0]}") from None
+    params = [n for n in inspect.signature(cls).parameters if n != "self"]
+    unknown = [n for n in params if n not in SLOTS]
+    if unknown:
+        raise ConfigError(f"{target} asks for slot(s) {unknown} that the composition root does not fill; "
+                          f"slots: {sorted(SLOTS)}")
+    torch.manual_seed(int(cfg.seed))  # parts with random initial values (features, weights) follow the run's seed
+    slots = _Slots(cfg)
+    return cls(**{n: slots[n] for n in params})

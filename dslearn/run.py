@@ -77,10 +77,10 @@ PROG = "dslearn-run"
 
 def resolve_entry(entry: str):
     """A registered study entry (``"pkg.module:function"``, one of
-    :data:`dslearn.schemas.core.TASK_ENTRIES`) -> the function."""
-    from dslearn.schemas.core import check_entry
+    :data:`dslearn.schemas.core.TASK_TARGETS`: a study not yet built as a component) -> the function."""
+    from dslearn.schemas.core import check_target
 
-    check_entry(entry)
+    check_target(entry, "entry")
     mod, fn = entry.split(":", 1)
     try:
         return getattr(importlib.import_module(mod), fn)
@@ -226,21 +226,27 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
         import torch
 
         torch.set_num_threads(int(cfg.threads))
-    fn = resolve_entry(cfg.task.entry)
     started = _dt.datetime.now(_dt.timezone.utc)
     t0 = time.perf_counter()
-    import inspect
-
     from dslearn.diagnostics import Diagnostics
 
-    takes_diag = "diagnostics" in inspect.signature(fn).parameters
+    progress = bool(cfg.get("progress", False))
     with Diagnostics() as diag, WarningLedger(diag) as ledger:
-        df = fn(cfg, diagnostics=diag) if takes_diag else fn(cfg)
+        if "_target_" in cfg.task:  # a component: the composition root fills its slots
+            from dslearn.compose import build_study
+
+            df = build_study(cfg).run(diagnostics=diag, progress=progress)
+        else:
+            import inspect
+
+            fn = resolve_entry(cfg.task.entry)
+            df = fn(cfg, diagnostics=diag) if "diagnostics" in inspect.signature(fn).parameters else fn(cfg)
     wall = time.perf_counter() - t0
+    what = cfg.task.get("_target_") or cfg.task.get("entry")
     if not isinstance(df, pd.DataFrame) or not {"metric", "value"} <= set(df.columns):
-        raise RuntimeError(f"task {cfg.task.entry} must return a tidy DataFrame with 'metric' and 'value' columns")
+        raise RuntimeError(f"task {what} must return a tidy DataFrame with 'metric' and 'value' columns")
     if df.empty:
-        raise RuntimeError(f"task {cfg.task.entry} returned an empty result table")
+        raise RuntimeError(f"task {what} returned an empty result table")
     df = df.copy()
     for col, val in (("seed", int(cfg.seed)), ("task", str(cfg.task.name)), ("study", str(cfg.study))):
         if col not in df.columns:
@@ -411,13 +417,7 @@ def _run_locked(cfg: DictConfig, out_dir: Path, multirun: bool, job: dict, tag: 
     if cfg.get("print_table", True) and not multirun:
         from dslearn.report import console_table, summarize
 
-        summary = summarize(df)
-        text = None
-        if str(cfg.task.name) != "yu":  # other studies print their own paper-shaped tables
-            mod = importlib.import_module(str(cfg.task.entry).split(":")[0])
-            if hasattr(mod, "report"):
-                text = mod.report(df, summary, out_dir)
-        print(text or console_table(summary))
+        print(console_table(summarize(df)))
         print(f"results: {out_dir / RESULTS_FILE}")
     log.info("%s summary: done, %d rows, wall %.1fs, results %s", tag, len(df), wall, out_dir / RESULTS_FILE)
     return {"status": "done", "dir": str(out_dir), "rows": len(df)}

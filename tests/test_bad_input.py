@@ -138,9 +138,9 @@ OTHER_CASES = [
     (["+max_memory_gb=0.001"], "exceeds the limit of 0.001 GB (max_memory_gb=0.001)"),
     (["+max_memory_gb=-1"], "max_memory_gb=-1.0 must be > 0"),
     (["threads=1000000"], "threads=1000000 must be in 1.."),
-    (["task.entry=builtins:len"], "task.entry='builtins:len' is not a registered study entry; choose one of ["),
-    (["task.entry=os:system"], "task.entry='os:system' is not a registered study entry"),
-    (["task.entry=dslearn.studies.yu:report"], "is not a registered study entry"),
+    (["task._target_=builtins.len"], "task._target_='builtins.len' is not a registered study; choose one of ["),
+    (["task._target_=os.system"], "task._target_='os.system' is not a registered study"),
+    (["task._target_=dslearn.studies.yu.check_offline"], "is not a registered study"),
     (["network.colr=3"], "network.colr: no such key in the configuration (known keys of network: ["),
     (["model=nosuch"], "model='nosuch' is not an option of the config group 'model'; choose one of ['gp'"),
     (["experiment=nosuch"], "experiment='nosuch' is not an option of the config group 'experiment'"),
@@ -176,16 +176,17 @@ def test_good_configs_pass(make_cfg):
 
 
 def test_registry_matches_the_task_configs():
-    """``task.entry`` must be registered; the registry is exactly the task configs' entries."""
+    """``task._target_`` (or a study's ``task.entry``) must be registered; the registry is exactly the
+    task configs' study classes."""
     from omegaconf import OmegaConf
 
-    from dslearn.schemas.core import TASK_ENTRIES
+    from dslearn.schemas.core import TASK_TARGETS
 
     found = {}
     for p in (ROOT / "conf" / "task").glob("*.yaml"):
         c = OmegaConf.load(p)
-        found[str(c.name)] = str(c.entry)
-    assert found == TASK_ENTRIES
+        found[str(c.name)] = str(c.get("_target_") or c.entry)
+    assert found == TASK_TARGETS
 
 
 # ------------------------------------------------------------------------------------------
@@ -347,16 +348,16 @@ def test_report_bad_inputs(tmp_path):
 
 def test_bad_entry_and_network(make_cfg):
     from dslearn.run import resolve_entry
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
-    with pytest.raises(ConfigError, match="task.entry='nomodule' is not a registered study entry"):
+    with pytest.raises(ConfigError, match="task.entry='nomodule' is not a registered study"):
         resolve_entry("nomodule")
-    with pytest.raises(ConfigError, match="is not a registered study entry"):
+    with pytest.raises(ConfigError, match="is not a registered study"):
         resolve_entry("dslearn.nosuch:run")
-    assert resolve_entry("dslearn.studies.yu:run").__name__ == "run"
+    assert resolve_entry("dslearn.studies.jiang_fg:run").__name__ == "run"
     cfg = make_cfg("network.comm_radius=0.5")
     with pytest.raises(ConfigError, match="disconnected"):
-        YuStudy.from_config(cfg)
+        api.build_study(cfg)
 
 
 def test_yu_faults_task_checks(make_cfg):

@@ -118,13 +118,18 @@ TASKS = {"braga_tbn": "BragaTask", "ethucy_forecast": "EthucyForecastTask", "eth
          "jiang_fg": "JiangTask", "liu_dgpt": "LiuDgpt", "yu": "YuTask", "yu_faults": "FaultTask"}
 
 
-def _check_task(option, cfg, world):  # the study's schema, its entry point dslearn.studies.<task>:run
+def _check_task(option, cfg, world):  # the study's schema and its class (or entry point) in dslearn.studies.<task>
     import importlib
 
     assert cfg.task.name == option and OmegaConf.get_type(cfg.task).__name__ == TASKS[option]
-    module, fn = cfg.task.entry.split(":")
-    assert module == f"dslearn.studies.{option}" and fn == "run"
-    assert callable(getattr(importlib.import_module(module), fn))
+    if "_target_" in cfg.task:  # a component: a class with a run(diagnostics, progress) method
+        module, _, name = cfg.task._target_.rpartition(".")
+        assert module == f"dslearn.studies.{option}"
+        assert callable(getattr(getattr(importlib.import_module(module), name), "run"))
+    else:
+        module, fn = cfg.task.entry.split(":")
+        assert module == f"dslearn.studies.{option}" and fn == "run"
+        assert callable(getattr(importlib.import_module(module), fn))
     validate_config(cfg)
 
 

@@ -288,13 +288,13 @@ def test_aggregated_refuses_what_it_would_ignore():
 
 # ------------------------------------------------------------------------- study and command line
 def test_tiny_yu_study_for_every_variant():
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
     res = {}
     for v in ("exact", "window", "sgpr", "ssgp"):
-        study = YuStudy.from_options(model="gp_increment_rbcm", consensus="hybrid", train_episodes=2, test_episodes=1,
+        study = api.yu_study(model="gp_increment_rbcm", consensus="hybrid", train_episodes=2, test_episodes=1,
                                      **{"+model.variant": v})
-        assert study.parts.model.base.variant == v
+        assert study.model.base.variant == v
         df = study.run()
         assert len(df) and df["value"].map(math.isfinite).all(), v
         per = df.pivot_table(index=["node", "episode"], columns="metric", values="value")

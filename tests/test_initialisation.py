@@ -11,7 +11,7 @@ from dslearn.fusion.weights import consensus_weights
 from dslearn.models.social_force import SocialForce, soft_distance, social_force_acceleration
 from dslearn.sim.placement import make_network
 from dslearn.sim.scenario import SocialForceScenario
-from dslearn.studies.yu import YuStudy
+from dslearn import api
 from dslearn.filters.distributed import diffuse_prior, first_observations, initial_belief, prior_means
 from dslearn.types import StepContext, agents, batch_jacobian
 
@@ -33,7 +33,7 @@ def _layout():
 
 
 def _study(make_cfg, model, consensus, *extra):
-    return YuStudy.from_config(make_cfg(f"model={model}", f"consensus={consensus}", *_layout(), *extra))
+    return api.build_study(make_cfg(f"model={model}", f"consensus={consensus}", *_layout(), *extra))
 
 
 def _sensor_means(df, metric):
@@ -45,8 +45,7 @@ def test_layout_premise(make_cfg):
     """Sensor 4 sees neither target at both t = 0 and t = 1 (what its own initialisation needs) in
     any test episode, and sees them later."""
     study = _study(make_cfg, "lin", "individual", "data.train_episodes=0", "data.test_episodes=50")
-    scenario, network, *_ = study.build()
-    test, _ = study.sample(scenario, network, D, "cpu")
+    test, _ = study.sample()
     vis = test.visible[3]  # (B, K+1, A)
     assert not (vis[:, 0] & vis[:, 1]).any()
     assert vis[:, :2].any(1).float().mean() < 0.25  # and mostly not even once

@@ -147,19 +147,19 @@ def test_reserve_allocates_once_and_changes_no_result():
 
 
 def test_study_results_do_not_depend_on_the_factor_form():
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
-    runs = [YuStudy.from_options(model="gp_increment", consensus="hybrid", train_episodes=3, test_episodes=2,
+    runs = [api.yu_study(model="gp_increment", consensus="hybrid", train_episodes=3, test_episodes=2,
                                  **{"model.factor": f}).run() for f in ("inverse", "cholesky")]
     a, b = (r["value"].to_numpy() for r in runs)
     np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-10)
 
 
 def test_bad_factor_values_are_refused_before_any_work():
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
     with pytest.raises(ConfigError, match="model.factor"):
-        YuStudy.from_options(model="gp", consensus="hybrid", **{"model.factor": "lu"})
+        api.yu_study(model="gp", consensus="hybrid", **{"model.factor": "lu"})
     with pytest.raises(ConfigError, match="model.factor"):
         GPMotionModel(8, num_nodes=2, variant="window", window=20, factor="inverse")
     with pytest.raises(ConfigError, match="model.factor"):

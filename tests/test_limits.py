@@ -220,13 +220,12 @@ def test_uniform_weights_on_a_regular_graph_give_the_centralized_limit():
 def _yu_track(consensus, *overrides, episodes=2):
     """Test episodes of the Yu configuration (LIN model, conf/network/yu.yaml) tracked with one fusion."""
     from dslearn.filters.distributed import initial_belief, track
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
     cfg = _compose("model=lin", f"consensus={consensus}", "data.train_episodes=0", f"data.test_episodes={episodes}",
                    *overrides)
-    study = YuStudy.from_config(cfg)
-    p = study.parts
-    test, _ = study.sample(p.scenario, p.network, p.dtype, p.device)
+    p = api.build_study(cfg)
+    test, _ = p.sample()
     ctx = p.scenario.ctx()
     init = initial_belief(test.measurements, p.network, ctx.dt, p.fusion, p.scenario.area,
                           cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
@@ -262,7 +261,7 @@ def test_faults_study_without_faults_equals_yu_study(model):
     hybrid_nodes (omega = S) differs from hybrid (omega = 1)."""
     from dslearn.schemas.core import validate_config
     from dslearn.studies import yu_faults
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
     cfg = _compose("experiment=yu_faults", f"task.models=[{model}]", f"task.fusions=[{','.join(FUSIONS)}]",
                    "task.train_episodes=2", "task.test_episodes=2", "task.link_fail=[0.0]", "task.node_fail=[0.0]",
@@ -275,7 +274,7 @@ def test_faults_study_without_faults_equals_yu_study(model):
     for fname in FUSIONS:
         ycfg = _compose(f"model={model}", f"consensus={fname}", "consensus.weights=metropolis",
                         "data.train_episodes=2", "data.test_episodes=2")
-        yu = YuStudy.from_config(ycfg).run()
+        yu = api.build_study(ycfg).run()
         expect = yu[yu.metric.isin(TRACK_METRICS)].groupby(["episode", "metric"]).value.mean()  # over nodes
         got[fname] = faults[faults.consensus == fname].set_index(["episode", "metric"]).value.sort_index()
         assert got[fname].index.equals(expect.index) and len(expect) == 2 * len(TRACK_METRICS)

@@ -192,10 +192,10 @@ def test_social_pooling_differs_from_the_plain_lstm_only_within_the_neighbourhoo
 def test_tiny_yu_study_with_the_lstm(filt):
     """``model=lstm`` composes, passes the up-front check, is trained offline on 2 training episodes
     (1 held out for Q) and tracks 1 test episode, with finite results labelled by the option."""
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
     kw = {"model.epochs": 2, "model.embed": 8, "model.hidden": 8, "filter": filt}
-    study = YuStudy.from_options(model="lstm", consensus="hybrid", train_episodes=2, test_episodes=1, **kw)
+    study = api.yu_study(model="lstm", consensus="hybrid", train_episodes=2, test_episodes=1, **kw)
     df = study.run()
     label = "lstm" if filt == "default" else "lstm+ukf"
     assert set(df.model) == {label} and set(df.train_seen) == {2}

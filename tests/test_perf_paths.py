@@ -14,9 +14,9 @@ CTX = StepContext(dt=0.25)
 
 
 def _opts(model, consensus, train, test, **kw):
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
-    return YuStudy.from_options(model=model, consensus=consensus, train_episodes=train, test_episodes=test, **kw)
+    return api.yu_study(model=model, consensus=consensus, train_episodes=train, test_episodes=test, **kw)
 
 
 @pytest.mark.parametrize("factor,cap", [("cholesky", 392), ("inverse", 396)])

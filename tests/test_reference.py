@@ -18,16 +18,20 @@ NET = {"network.num_comm": 2, "network.comm_radius": 6.0}  # degrees 4 and 5: Me
 SHORT = {"scenario.horizon": 1.5}  # 6 steps: the GP runs (the reference refactorises its GP at every step)
 
 
-def _study(model, consensus, **kw):
-    from dslearn.studies.yu import YuStudy
+def _cfg(model, consensus, **kw):
+    """The composed (validated) configuration of a tiny Yu run: 1 training + 1 test episode."""
+    from dslearn import api
 
-    return YuStudy.from_options(model=model, consensus=consensus, train_episodes=1, test_episodes=1, **NET, **kw)
+    opts = {"data.train_episodes": 1, "data.test_episodes": 1, **NET, **kw}
+    return api.compose("task=yu", f"model={model}", f"consensus={consensus}", *(f"{k}={v}" for k, v in opts.items()))
 
 
 def _assert_equal_to_reference(model, consensus, **kw):
-    study = _study(model, consensus, **kw)
-    fast = study.run()
-    ref = ReferenceYu.from_config(study.cfg).run()
+    from dslearn import api
+
+    cfg = _cfg(model, consensus, **kw)
+    fast = api.build_study(cfg).run()
+    ref = ReferenceYu.from_config(cfg).run()
     r = compare_results(fast, ref)
     assert r["max_diff"] <= REFERENCE_TOL, r["worst"]
     return fast
@@ -87,7 +91,7 @@ def test_reference_refuses_what_it_does_not_implement():
                              ("gp_sgpr", {}, "model: the reference implementation supports the exact and window GPs"),
                              ("gp_increment", {"filter": "ukf"}, "filter.predict")):
         with pytest.raises(ConfigError, match=field):
-            ReferenceYu.from_config(_study(model, "hybrid", **kw).cfg).run()
+            ReferenceYu.from_config(_cfg(model, "hybrid", **kw)).run()
 
 
 # --- the reference's own pieces against values by hand --------------------------------------------------------
@@ -111,7 +115,7 @@ def test_fast_weights_equal_reference_weights_on_the_study_network():
     from dslearn.compose import build_network
     from dslearn.fusion.weights import consensus_weights
 
-    network = build_network(_study("lin", "hybrid").cfg)
+    network = build_network(_cfg("lin", "hybrid"))
     for rule in ("uniform", "metropolis", "max_degree", "half_max_degree"):
         ref = torch.tensor(reference_weights(network.adjacency, rule), dtype=D)
         assert torch.allclose(consensus_weights(network.adjacency, rule), ref, atol=1e-14), rule
@@ -160,8 +164,9 @@ def test_reference_metrics_by_hand():
 
 
 def test_compare_results_flags_a_wrong_value_and_a_wrong_label():
-    study = _study("lin", "individual")
-    fast = study.run()
+    from dslearn import api
+
+    fast = api.build_study(_cfg("lin", "individual")).run()
     ref = fast.copy()
     ref.loc[5, "value"] = ref.loc[5, "value"] * (1 + 10 * REFERENCE_TOL) + 10 * REFERENCE_TOL
     assert compare_results(fast, ref)["max_diff"] > REFERENCE_TOL

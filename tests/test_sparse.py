@@ -170,7 +170,7 @@ def _tiny_cfg(model_overrides):
     root = Path(__file__).resolve().parents[1] / "conf"
     cfg = OmegaConf.create({
         "study": "t", "seed": 0, "device": "cpu", "dtype": "float64", "progress": False, "threads": 1,
-        "task": {"entry": "dslearn.studies.yu:run", "name": "yu"},
+        "task": {"_target_": "dslearn.studies.yu.YuStudy", "name": "yu"},
         "scenario": OmegaConf.load(root / "scenario/yu_two_agents.yaml"),
         "network": OmegaConf.load(root / "network/yu.yaml"),
         "observation": OmegaConf.load(root / "observation/linear.yaml"),
@@ -185,16 +185,16 @@ def _tiny_cfg(model_overrides):
 
 def test_study_runs_each_variant_and_large_window_equals_exact(monkeypatch):
     from dslearn.models.gp_backends.exact import OnlineGP
-    from dslearn.studies.yu import YuStudy
+    from dslearn import api
 
-    ref = YuStudy.from_config(_tiny_cfg({})).run()
-    win = YuStudy.from_config(_tiny_cfg({"variant": "window", "window": 1000})).run()
+    ref = api.build_study(_tiny_cfg({})).run()
+    win = api.build_study(_tiny_cfg({"variant": "window", "window": 1000})).run()
     assert (ref["value"] - win["value"]).abs().max() < 1e-9
     te_ref = ref[ref.metric == "track_err"]["value"].mean()
     # what learning buys on these 4 + 3 episodes: the same study with no training episode
     untrained = _tiny_cfg({})
     untrained.data.train_episodes = 0
-    te_none = YuStudy.from_config(untrained).run().query("metric == 'track_err'")["value"].mean()
+    te_none = api.build_study(untrained).run().query("metric == 'track_err'")["value"].mean()
     gain = te_none - te_ref
     assert gain > 0.1 * te_ref, (te_none, te_ref)  # measured 0.1465 untrained vs 0.1268 exact (-13 %)
     # record what the study feeds the sliding window, to check its final posterior independently
@@ -207,7 +207,7 @@ def test_study_runs_each_variant_and_large_window_equals_exact(monkeypatch):
 
     monkeypatch.setattr(WindowGP, "append", recording_append)
     for ov in ({"variant": "sgpr", "inducing": 16}, {"variant": "ssgp", "features": 50}, {"variant": "window", "window": 20}):
-        study = YuStudy.from_config(_tiny_cfg(ov))
+        study = api.build_study(_tiny_cfg(ov))
         df = study.run()
         assert df["value"].notna().all() and len(df) == len(ref)
         te = df[df.metric == "track_err"]["value"].mean()

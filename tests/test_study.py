@@ -12,6 +12,7 @@ import pytest
 from dslearn.errors import ConfigError
 from dslearn.report import summarize
 from dslearn.run import execute
+from dslearn import api
 from dslearn.studies.yu import YuStudy
 
 TINY = ("data.train_episodes=2", "data.test_episodes=2")
@@ -30,7 +31,7 @@ def _tiny_run(make_cfg, model, consensus):
     reference of the consensus runs)."""
     if (model, consensus) not in _RUNS:
         cfg = make_cfg(f"model={model}", f"consensus={consensus}", *TINY)
-        _RUNS[model, consensus] = YuStudy.from_config(cfg).run()
+        _RUNS[model, consensus] = api.build_study(cfg).run()
     return _RUNS[model, consensus]
 
 
@@ -74,10 +75,10 @@ def test_learned_observation_model_runs(make_cfg):
     R = (sigma_f^2 + sigma_eps^2) I: the run at 0 training episodes equals the linear observation model
     with noise_std = sqrt(1 + 0.2^2), metric by metric. Learning then feeds the sensors' GPs only."""
     cfg = make_cfg("model=gp_increment", "observation=gp", *TINY, "data.eval_at=[0,2]")
-    study = YuStudy.from_config(cfg)
+    study = api.build_study(cfg)
     df = study.run()
     assert np.isfinite(df["value"]).all()
-    lin = YuStudy.from_config(make_cfg("model=gp_increment", "observation=linear",
+    lin = api.build_study(make_cfg("model=gp_increment", "observation=linear",
                                        f"observation.noise_std={math.sqrt(1.0 + 0.2**2)}",
                                        "data.train_episodes=0", "data.test_episodes=2")).run()
     key = ["metric", "node", "episode"]
@@ -85,8 +86,8 @@ def test_learned_observation_model_runs(make_cfg):
     np.testing.assert_allclose(prior, lin.sort_values(key)["value"].to_numpy(), rtol=1e-9, atol=0)
     learned = df[df["train_seen"] == 2].sort_values(key)["value"].to_numpy()
     assert np.abs(learned - prior).max() > 1e-3  # the learned models changed the result
-    gp = study.parts.observation.gp
-    net = study.parts.network
+    gp = study.observation.gp
+    net = study.network
     seen = gp.mask[:, : gp.n].sum(1)  # valid (estimate, measurement) pairs per node
     assert (seen[net.is_sensor] > 0).all() and (seen[~net.is_sensor] == 0).all()
 
@@ -95,7 +96,7 @@ def test_consensus_beats_individual_and_sfm_predicts_best(make_cfg):
     res = {}
     for model, fusion in itertools.product(["lin", "sfm"], ["individual", "hybrid"]):
         cfg = make_cfg(f"model={model}", f"consensus={fusion}", "data.train_episodes=0", "data.test_episodes=10")
-        df = YuStudy.from_config(cfg).run()
+        df = api.build_study(cfg).run()
         sens = df[(df["node_kind"] == "sensor")]
         res[model, fusion] = sens.groupby("metric")["value"].mean()
     for model in ("lin", "sfm"):
@@ -105,7 +106,7 @@ def test_consensus_beats_individual_and_sfm_predicts_best(make_cfg):
 
 def test_runs_are_reproducible(make_cfg):
     cfg = make_cfg("model=gp_increment", *TINY)
-    a, b = YuStudy.from_config(cfg).run(), YuStudy.from_config(cfg).run()
+    a, b = api.build_study(cfg).run(), api.build_study(cfg).run()
     pd.testing.assert_frame_equal(a, b)
 
 
@@ -128,7 +129,7 @@ def test_runs_are_reproducible(make_cfg):
 def test_bad_config_is_a_clear_error(make_cfg, override, field):
     cfg = make_cfg(override, *TINY, "network.positions=null")
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
-        YuStudy.from_config(cfg)
+        api.build_study(cfg)
 
 
 def test_unknown_model_group_is_rejected_by_hydra(make_cfg):
@@ -141,7 +142,7 @@ def test_unknown_model_group_is_rejected_by_hydra(make_cfg):
 def test_too_few_training_episodes(make_cfg):
     cfg = make_cfg("data.train_episodes=3", "data.min_train_episodes=10", "data.test_episodes=1")
     with pytest.raises(ConfigError, match="too few"):
-        YuStudy.from_config(cfg)
+        api.build_study(cfg)
 
 
 def test_runner_writes_results_and_report(make_cfg, tmp_path):
@@ -194,8 +195,8 @@ def test_learning_gate_skips_uninformed_pairs(make_cfg):
     from dslearn.filters.distributed import initial_belief, track
 
     cfg = make_cfg("model=gp", "consensus=individual", "data.train_episodes=1", "data.test_episodes=1")
-    study = YuStudy.from_config(cfg)
-    scenario, network, model, obs, fusion = study.build()
+    study = api.build_study(cfg)
+    scenario, network, model, obs, fusion = study.scenario, study.network, study.model, study.observation, study.fusion
     import torch
 
     ep = scenario.sample(1, network, torch.Generator().manual_seed(0))
@@ -206,7 +207,7 @@ def test_learning_gate_skips_uninformed_pairs(make_cfg):
     # communication-only nodes never measure, so under individual fusion they never learn
     assert not mask[~network.is_sensor].any()
     # without the gate every node appends every step
-    _, _, model2, _, _ = study.build()
+    model2 = api.build_study(cfg).model  # a fresh model, built like the first
     track(ep.measurements, network, model2, obs, fusion, scenario.ctx(), init, learn=True, learn_gate_std=None)
     assert model2.gp.mask[:, : model2.gp.n].all()
 
@@ -217,8 +218,8 @@ def test_cuda_run_matches_cpu(make_cfg):
 
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
-    cpu = YuStudy.from_config(make_cfg("model=gp_increment", *TINY)).run()
-    gpu = YuStudy.from_config(make_cfg("model=gp_increment", "device=cuda", *TINY)).run()
+    cpu = api.build_study(make_cfg("model=gp_increment", *TINY)).run()
+    gpu = api.build_study(make_cfg("model=gp_increment", "device=cuda", *TINY)).run()
     assert (cpu["value"] - gpu["value"]).abs().max() < 1e-8
 
 
@@ -228,17 +229,17 @@ def test_cuda_requested_without_device_is_a_config_error(make_cfg):
     if torch.cuda.is_available():
         pytest.skip("a CUDA device is present")
     with pytest.raises(ConfigError, match="device=cuda"):
-        YuStudy.from_config(make_cfg("device=cuda", *TINY))
+        api.build_study(make_cfg("device=cuda", *TINY))
 
 
 def test_eval_at_checkpoints_equal_separate_runs(make_cfg):
     """Evaluating after 0, 2 and 3 training episodes in one run gives exactly what separate runs
     with 0, 2 and 3 training episodes give (the test set does not depend on the training size)."""
     base = ("model=gp_increment", "consensus=hybrid", "data.test_episodes=3")
-    one = YuStudy.from_config(make_cfg(*base, "data.train_episodes=3", "data.eval_at=[0,2,3]")).run()
+    one = api.build_study(make_cfg(*base, "data.train_episodes=3", "data.eval_at=[0,2,3]")).run()
     assert sorted(one["train_seen"].unique()) == [0, 2, 3]
     for k in (0, 2, 3):
-        sep = YuStudy.from_config(make_cfg(*base, f"data.train_episodes={k}")).run()
+        sep = api.build_study(make_cfg(*base, f"data.train_episodes={k}")).run()
         got = one[one["train_seen"] == k].sort_values(["metric", "node", "episode"])["value"].to_numpy()
         exp = sep.sort_values(["metric", "node", "episode"])["value"].to_numpy()
         assert got.shape == exp.shape and abs(got - exp).max() < 1e-12, k
@@ -247,11 +248,10 @@ def test_eval_at_checkpoints_equal_separate_runs(make_cfg):
 def test_an_episode_is_the_same_whatever_the_data_set_size(make_cfg):
     """One random stream per episode: test episode 2 is the same with 3 or 5 test episodes, and a
     test episode's results do not depend on the episodes tracked beside it."""
-    a = YuStudy.from_config(make_cfg("model=lin", "consensus=hybrid", "data.train_episodes=0", "data.test_episodes=3"))
-    b = YuStudy.from_config(make_cfg("model=lin", "consensus=hybrid", "data.train_episodes=0", "data.test_episodes=5"))
-    sa, na, *_ = a.build()
-    ta, _ = a.sample(sa, na, torch.float64, "cpu")
-    tb, _ = b.sample(sa, na, torch.float64, "cpu")
+    a = api.build_study(make_cfg("model=lin", "consensus=hybrid", "data.train_episodes=0", "data.test_episodes=3"))
+    b = api.build_study(make_cfg("model=lin", "consensus=hybrid", "data.train_episodes=0", "data.test_episodes=5"))
+    ta, _ = a.sample()
+    tb, _ = b.sample()
     assert torch.equal(ta.states, tb.states[:3]) and torch.equal(ta.meas, tb.meas[:, :3])
     ra, rb = a.run(), b.run()
     key = ["metric", "node", "episode"]

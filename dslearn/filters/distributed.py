@@ -23,6 +23,17 @@ def _measurements_only(ep) -> None:
         raise TypeError(f"the filter takes Measurements (episodes.measurements), not {type(ep).__name__}")
 
 
+@dataclass(frozen=True)
+class FilterSettings:
+    """The distributed filter's options besides its prediction step (the ``filter`` group): what a node
+    believes about a target before any observation (:func:`diffuse_prior`: position and velocity
+    standard deviations) and the learning gate of :func:`track` (``learn_gate_std``, ``None`` = off)."""
+
+    prior_pos_std: float = 1000.0
+    prior_vel_std: float = 1000.0
+    learn_gate_std: float | None = 2.0
+
+
 @dataclass
 class TrackResult:
     """Filtered beliefs of every node: ``mean (S, B, K+1, Dx)``, ``info (S, B, K+1, Dx, Dx)``."""

@@ -11,13 +11,14 @@ belief starts, what happens before an episode (a fault schedule) and what an eva
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, List, Optional
 
 import pandas as pd
 import torch
 
 from dslearn.episodes import Measurements
 from dslearn.filters.distributed import TrackResult, track
+from dslearn.settings import ranged
 
 
 @dataclass
@@ -87,8 +88,20 @@ def algorithm1(learn: Callable[[int], None], checkpoints: list[int], evaluate: C
     return pd.concat(frames, ignore_index=True)
 
 
-def checkpoints(data) -> list[int]:
+@dataclass
+class DataSettings:
+    """How many episodes a learn-while-tracking study draws (the ``data`` group): ``train_episodes``
+    learned one after another, ``test_episodes`` evaluated at every checkpoint (``eval_at``: the
+    training-episode counts at which to evaluate; ``None`` = at the end)."""
+
+    train_episodes: int = ranged(30, ge=0)
+    test_episodes: int = ranged(20, ge=1)
+    eval_at: Optional[List[int]] = None
+    min_train_episodes: int = ranged(0, ge=0)
+
+
+def checkpoints(data: DataSettings) -> list[int]:
     """The training-episode counts at which a study evaluates: ``data.eval_at`` (sorted, unique) or
     just ``data.train_episodes``."""
-    ev = data.get("eval_at")
+    ev = data.eval_at
     return [int(data.train_episodes)] if ev is None else sorted({int(v) for v in ev})

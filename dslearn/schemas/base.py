@@ -29,20 +29,7 @@ from typing import Any, Callable
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from dslearn.errors import ConfigError
-
-_RULES = ("ge", "gt", "le", "lt", "choices", "integer", "each", "min_len", "max_len", "nullable")
-
-
-def ranged(default: Any = dataclasses.MISSING, *, factory: Callable[[], Any] | None = None, **rules) -> Any:
-    """A dataclass field with range / choice rules (``ge gt le lt choices min_len max_len``; ``each=True``
-    applies the number/choice rules to every element of a list)."""
-    bad = set(rules) - set(_RULES)
-    if bad:
-        raise TypeError(f"unknown rule(s) {sorted(bad)}; known: {_RULES}")
-    if factory is not None:
-        return dataclasses.field(default_factory=factory, metadata=rules)
-    return dataclasses.field(default=default, metadata=rules)
-
+from dslearn.settings import RULES, ranged  # noqa: F401  (the rules this layer applies)
 
 def _fmt(v) -> str:
     return repr(v) if not isinstance(v, float) or math.isfinite(v) else str(v)

@@ -13,9 +13,10 @@ What is checked:
   ``resume``, ``study`` (str), ``max_memory_gb`` (the memory limit of the resource guard, set
   with ``+max_memory_gb=...``); an unknown top-level key fails (known: these, ``task``, and
   every config group under ``conf/``, so groups added later are accepted automatically);
-* ``task.entry`` must be one of the registered study entries (:data:`TASK_ENTRIES`: only the
-  project's own studies are ever called) and ``task.name`` a non-empty string; the rest of
-  ``task`` is the study's to validate;
+* ``task._target_`` (a study class the composition root builds, :func:`dslearn.compose.build_study`)
+  or, for a study not converted yet, ``task.entry`` (a function) must be registered
+  (:data:`TASK_TARGETS`: only the project's own studies are ever built) and ``task.name`` a
+  non-empty string; the rest of ``task`` is the study's settings, checked by its schema;
 * resource guard (core study): the estimated peak memory (:func:`estimate_core_memory`) must
   stay under ``max_memory_gb`` (default: 75 % of this machine's memory), so a run that would
   swamp the machine is refused up front with the estimate in the message;
@@ -49,14 +50,16 @@ from dslearn.errors import ConfigError, check_finite, check_choice, check_positi
 
 
 from dslearn.conf_paths import CONF_DIR, CONF_DIRS  # noqa: E402,F401  (re-exported)
+from dslearn.learning.online import DataSettings  # noqa: E402  (the data group's schema is the study's slot type)
 from dslearn.schemas.base import validate_task  # noqa: E402
 
 CORE_TASKS = ("yu", "yu_faults")
 
-#: the registry of study entries: ``task.name`` -> ``task.entry``. ``dslearn-run`` calls only
-#: these (``task.entry`` must be one of the values), never an arbitrary importable callable.
-TASK_ENTRIES: dict[str, str] = {
-    "yu": "dslearn.studies.yu:run",
+#: the registry of studies: ``task.name`` -> the study class (``task._target_``; a ``module:function``
+#: entry for a study not yet a component). ``dslearn-run`` builds only these, never an arbitrary
+#: importable callable.
+TASK_TARGETS: dict[str, str] = {
+    "yu": "dslearn.studies.yu.YuStudy",
     "yu_faults": "dslearn.studies.yu_faults:run",
     "ethucy_tracking": "dslearn.studies.ethucy_tracking:run",
     "ethucy_forecast": "dslearn.studies.ethucy_forecast:run",
@@ -79,12 +82,6 @@ class RootSchema:
     print_table: bool = True
     resume: bool = False
     max_memory_gb: Optional[float] = None  # resource guard limit (null = MEMORY_SHARE of the machine)
-
-
-@dataclass
-class TaskHead:
-    entry: str = "dslearn.studies.yu:run"
-    name: str = "yu"
 
 
 @dataclass
@@ -201,14 +198,6 @@ class ConsensusSchema(PartSchema):
 
 
 @dataclass
-class DataSchema:
-    train_episodes: int = 30
-    test_episodes: int = 20
-    eval_at: Optional[List[int]] = None
-    min_train_episodes: int = 0
-
-
-@dataclass
 class FilterSchema:
     prior_pos_std: float = 1000.0
     prior_vel_std: float = 1000.0
@@ -222,7 +211,7 @@ GROUP_SCHEMAS = {
     "model": ModelSchema,
     "observation": ObservationSchema,
     "consensus": ConsensusSchema,
-    "data": DataSchema,
+    "data": DataSettings,
     "filter": FilterSchema,
 }
 
@@ -334,11 +323,12 @@ def validate_config(cfg: DictConfig) -> None:
         check_positive("max_memory_gb", r.max_memory_gb)
     if "task" not in cfg or cfg.task is None:
         raise ConfigError("task is missing; choose one with task=<name> or experiment=<study>")
-    for k in ("entry", "name"):
+    key = "_target_" if "_target_" in cfg.task else "entry"
+    for k in (key, "name"):
         v = cfg.task.get(k)
         if not isinstance(v, str) or not v:
             raise ConfigError(f"task.{k}={v!r} must be a non-empty string")
-    check_entry(cfg.task.entry)
+    check_target(cfg.task[key], key)
     if cfg.task.name in CORE_TASKS:
         validate_core(cfg)
     validate_task(cfg)
@@ -347,12 +337,12 @@ def validate_config(cfg: DictConfig) -> None:
         check_parts(cfg)
 
 
-def check_entry(entry) -> None:
-    """ConfigError unless ``entry`` is a registered study entry (:data:`TASK_ENTRIES`)."""
-    allowed = sorted(set(TASK_ENTRIES.values()))
-    if entry not in allowed:
+def check_target(target, key: str = "_target_") -> None:
+    """ConfigError unless ``target`` is a registered study (:data:`TASK_TARGETS`)."""
+    allowed = sorted(set(TASK_TARGETS.values()))
+    if target not in allowed:
         raise ConfigError(
-            f"task.entry={entry!r} is not a registered study entry; choose one of {allowed} "
+            f"task.{key}={target!r} is not a registered study; choose one of {allowed} "
             f"(or pick a study with task=<name> / experiment=<study>)"
         )
 

@@ -1,4 +1,4 @@
-"""Schema of ``task=yu`` (the synthetic study). The task block names only the entry; the study's
+"""Schema of ``task=yu`` (the synthetic study). The task block names only the study class; its
 parts are the root groups (scenario, network, model, observation, consensus, data, filter),
 whose schemas and ranges are in :mod:`dslearn.schemas.core`."""
 
@@ -11,7 +11,7 @@ from dslearn.schemas.base import ROOT_GROUPS, register_task
 
 @dataclass
 class YuTask:
-    entry: str = "dslearn.studies.yu:run"
+    _target_: str = "dslearn.studies.yu.YuStudy"
     name: str = "yu"
 
 

@@ -1,10 +1,10 @@
 r"""Yu et al. synthetic study (Tables I–II, Fig. 2): learned vs parametric motion models
 inside a distributed information-form EKF.
 
-Python use, without Hydra::
+Python use (the same defaults as ``dslearn-run``, :mod:`dslearn.api`)::
 
-    from dslearn.studies.yu import YuStudy
-    study = YuStudy.from_options(model="gp_increment", consensus="hybrid", train_episodes=50)
+    from dslearn import api
+    study = api.yu_study(model="gp_increment", consensus="hybrid", train_episodes=50)
     df = study.run()          # tidy DataFrame, one row per episode x node x metric
 """
 
@@ -13,17 +13,18 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from pathlib import Path
+from typing import Any
 
 import pandas as pd
 import torch
-from omegaconf import DictConfig
 
-from dslearn.compose import build_parts
 from dslearn.diagnostics import Diagnostics
 from dslearn.errors import ConfigError
-from dslearn.filters.distributed import initial_belief
-from dslearn.learning.online import OnlineLearner, checkpoints as eval_points
+from dslearn.filters.distributed import FilterSettings, initial_belief
+from dslearn.fusion.strategies import Fusion
+from dslearn.learning.online import DataSettings, OnlineLearner, checkpoints as eval_points
+from dslearn.models.base import MotionModel, ObservationModel
+from dslearn.network import SensorNetwork
 from dslearn.metrics import metric_rows, prediction_error, tracking_metrics
 from dslearn.progress import evaluation_bar, training_bar
 from dslearn.sim.scenario import sample_split
@@ -34,79 +35,63 @@ log = logging.getLogger(__name__)
 @dataclass
 class YuStudy:
     """One run of the synthetic study: a motion model x a fusion strategy on one data size.
-    The parts come from the config groups (:func:`dslearn.compose.build_parts`); the study is the
-    protocol: which episodes, when to evaluate, what to record."""
 
-    cfg: DictConfig
+    Its slots are filled by the composition root (:func:`dslearn.compose.build_study`) with the
+    parts built from the config groups; the study is the protocol: which episodes, when to evaluate,
+    what to record."""
 
-    @classmethod
-    def from_config(cls, cfg: DictConfig) -> "YuStudy":
-        from dslearn.schemas.core import validate_config
-
-        validate_config(cfg)  # keys, types and ranges (dslearn.schemas.core, dslearn.schemas)
-        study = cls(cfg)
-        study.build()  # then what needs the built parts: shapes and connectivity
-        return study
-
-    @classmethod
-    def from_options(cls, model: str = "gp", consensus: str = "hybrid", **overrides) -> "YuStudy":
-        """Compose the default configuration (``conf/``) with a few options, without Hydra's app."""
-        from hydra import compose, initialize_config_dir
-
-        import dslearn.schemas  # noqa: F401  (the task schemas the configs name)
-        from dslearn.conf_paths import CONF_DIR
-
-        ov = [f"model={model}", f"consensus={consensus}"]
-        for k, v in overrides.items():
-            key = k if "." in k else {"train_episodes": "data.train_episodes", "test_episodes": "data.test_episodes"}.get(k, k)
-            ov.append(f"{key}={v}")
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-            cfg = compose("config", overrides=ov)
-        return cls.from_config(cfg)
+    scenario: Any
+    network: SensorNetwork
+    model: MotionModel
+    model_spec: dict
+    observation: ObservationModel
+    fusion: Fusion
+    predict: Any
+    filter: FilterSettings
+    data: DataSettings
+    seed: int
+    dtype: torch.dtype
+    device: torch.device
 
     def checkpoints(self) -> list[int]:
-        return eval_points(self.cfg.data)
+        return eval_points(self.data)
 
-    def build(self):
-        parts = build_parts(self.cfg)
-        self.parts = parts
-        return parts.scenario, parts.network, parts.model, parts.observation, parts.fusion
+    def sample(self):
+        """The run's (test, train) episodes (one random stream per episode)."""
+        d = self.data
+        return sample_split(self.scenario, self.network, self.seed, d.test_episodes, d.train_episodes, self.dtype,
+                            self.device)
 
-    def sample(self, scenario, network, dtype, device):
-        d = self.cfg.data
-        return sample_split(scenario, network, int(self.cfg.seed), d.test_episodes, d.train_episodes, dtype, device)
-
-    def run(self, progress: bool = False, diagnostics=None) -> pd.DataFrame:
+    def run(self, diagnostics=None, progress: bool = False) -> pd.DataFrame:
         """Train online on the training episodes, evaluate on the test episodes.
 
         Returns a tidy DataFrame (one row per checkpoint x test episode x node x metric).
         """
-        c = self.cfg
-        torch.manual_seed(int(c.seed))
-        p = build_parts(c)
-        self.parts = p
-        scenario, network, model, fusion = p.scenario, p.network, p.model, p.fusion
+        scenario, network, model, fusion, f = self.scenario, self.network, self.model, self.fusion, self.filter
+        name = str(self.model_spec["name"])
         ctx = scenario.ctx()
-        test, train = self.sample(scenario, network, p.dtype, p.device)
+        test, train = self.sample()
         learner = OnlineLearner(
-            network, model, p.observation, fusion, ctx,
-            init=lambda ep: initial_belief(ep, network, ctx.dt, fusion, scenario.area, c.filter.prior_pos_std, c.filter.prior_vel_std),
-            predict_step=p.predict, learn_gate_std=c.filter.get("learn_gate_std"),
+            network, model, self.observation, fusion, ctx,
+            init=lambda ep: initial_belief(ep, network, ctx.dt, fusion, scenario.area, f.prior_pos_std, f.prior_vel_std),
+            predict_step=self.predict, learn_gate_std=f.learn_gate_std,
         )
         learnable = learner.learnable
-        checkpoints = self.checkpoints() if learnable else [int(c.data.train_episodes)]
+        checkpoints = self.checkpoints() if learnable else [int(self.data.train_episodes)]
         t0 = time.perf_counter()
         diag = diagnostics or Diagnostics()
         if model.learns_offline:  # an offline model (the LSTM) learns once, from the training episodes' true tracks
             with diag.timed("fit_offline"):
-                model.fit_offline(offline_trajectories(model, train), ctx.dt, seed=int(c.seed))
+                model.fit_offline(offline_trajectories(model, train), ctx.dt, seed=self.seed)
         model.begin_episodes(test.states)
-        bar = training_bar(max(checkpoints), scenario.steps, c.model, enable=progress and learnable, desc=f"train {c.model.name}/{fusion.name}")
-        tbar = evaluation_bar(checkpoints, scenario.steps, c.model, enable=progress, learnable=learnable, desc="test", position=1)
+        bar = training_bar(max(checkpoints), scenario.steps, self.model_spec, enable=progress and learnable,
+                           desc=f"train {name}/{fusion.name}")
+        tbar = evaluation_bar(checkpoints, scenario.steps, self.model_spec, enable=progress, learnable=learnable,
+                              desc="test", position=1)
 
         # the filter's prediction step, when not the EKF's, labels the model's rows (gp_increment+ukf)
-        step = getattr(p.predict, "name", "ekf")
-        model_label = str(c.model.name) if step == "ekf" else f"{c.model.name}+{step}"
+        step = getattr(self.predict, "name", "ekf")
+        model_label = name if step == "ekf" else f"{name}+{step}"
 
         def evaluate(seen: int) -> pd.DataFrame:
             with diag.timed("evaluate"):
@@ -114,13 +99,13 @@ class YuStudy:
             metrics = tracking_metrics(res, test.states)
             metrics["pred_err"] = prediction_error(model, test.states, network.num_nodes, ctx, per_node=model.learnable)
             tbar.update(1)
-            log.info("evaluated %s/%s after %d training episodes (%.1fs)", c.model.name, fusion.name, seen, time.perf_counter() - t0)
+            log.info("evaluated %s/%s after %d training episodes (%.1fs)", name, fusion.name, seen, time.perf_counter() - t0)
             return metric_rows(
                 metrics, network, model=model_label, consensus=fusion.name,
                 omega=fusion.omega_label if fusion.uses_omega else "-",
                 iterations=fusion.iterations if fusion.name not in ("individual", "centralized") else 0,
-                weights=c.consensus.weights, train_episodes=int(c.data.train_episodes),
-                test_episodes=int(c.data.test_episodes), train_seen=int(seen),
+                weights=fusion.weights_rule, train_episodes=int(self.data.train_episodes),
+                test_episodes=int(self.data.test_episodes), train_seen=int(seen),
             )
 
         df = learner.run(train.measurements, checkpoints, evaluate, on_episode=lambda: bar.update(1))
@@ -128,7 +113,6 @@ class YuStudy:
         diag.count("train_episodes_seen", learner.seen)
         bar.close()
         tbar.close()
-        self.model, self.network, self.fusion = model, network, fusion
         return df
 
 
@@ -145,9 +129,3 @@ def offline_trajectories(model, train) -> torch.Tensor:
     training episodes (``model.train_on`` truth or null; the filter still sees only measurements)."""
     check_offline(model)
     return train.states
-
-
-def run(cfg: DictConfig, diagnostics=None) -> pd.DataFrame:
-    """Task entry point for ``dslearn-run`` (see :mod:`dslearn.run`)."""
-    study = YuStudy.from_config(cfg)
-    return study.run(progress=bool(cfg.get("progress", False)), diagnostics=diagnostics)
