@@ -6,7 +6,7 @@
 ``run`` tests the last commit: it exports ``HEAD`` into ``.mutation/`` (not tracked; the working tree's
 uncommitted edits are not seen) and calls mutmut there (``pip install mutmut``; its settings are
 ``[tool.mutmut]`` in ``pyproject.toml``: the modules under ``dslearn/fusion/``, ``dslearn/filters/`` and
-``dslearn/metrics.py``, the whole test suite, each mutant against the tests that cover the mutated
+``dslearn/metrics/``, the whole test suite, each mutant against the tests that cover the mutated
 function). mutmut keeps every verdict in ``.mutation/mutants/``, so a second ``run`` tests only what is
 left or what changed since; this is a benchmark, not part of CI (a full run takes hours on two cores).
 

@@ -32,7 +32,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("sim/",),
     ("filters/",),
     ("learning/",),
-    ("metrics", "forecast"),
+    ("metrics/", "forecast"),
     ("studies/",),
     ("schemas/",),
     ("compose", "reports/", "callbacks", "reference"),

@@ -1,15 +1,12 @@
-r"""Metrics: the only place that sees the ground truth next to the filters' beliefs, and the one
-writer of tidy metric rows (one row per node x episode x metric)."""
+r"""Tracking metrics of the distributed filters: errors of every node's beliefs against the truth."""
 
 from __future__ import annotations
 
-import pandas as pd
 import torch
 from torch import Tensor
 
 from dslearn.filters.distributed import TrackResult
 from dslearn.models.base import MotionModel
-from dslearn.network import SensorNetwork
 from dslearn.types import StepContext, agents
 
 
@@ -44,25 +41,3 @@ def prediction_error(model: MotionModel, truth: Tensor, num_nodes: int, ctx: Ste
         roll = model.rollout(x0, steps, ctx).unsqueeze(0).expand(num_nodes, -1, -1, -1)
     err = agents(roll - truth[:, 1:].unsqueeze(0))[..., :2].norm(dim=-1)
     return err.mean((-1, -2))
-
-
-def metric_rows(metrics: dict[str, Tensor], network: SensorNetwork, **keys) -> pd.DataFrame:
-    """Tidy rows of per-node, per-episode metrics ``{name: (S, B)}``: columns ``*keys, node,
-    node_kind, episode, metric, value`` (keys first, in their order, as constants)."""
-    frames = []
-    s = network.num_nodes
-    kinds = ["sensor" if network.is_sensor[i] else "comm" for i in range(s)]
-    for name, val in metrics.items():
-        v = val.detach().cpu().double()
-        b = v.shape[1]
-        frames.append(pd.DataFrame({
-            "node": [network.names[i] for i in range(s) for _ in range(b)],
-            "node_kind": [kinds[i] for i in range(s) for _ in range(b)],
-            "episode": list(range(b)) * s,
-            "metric": name,
-            "value": v.reshape(-1).numpy(),
-        }))
-    df = pd.concat(frames, ignore_index=True)
-    for i, (k, v) in enumerate(keys.items()):
-        df.insert(i, k, v)
-    return df
