@@ -145,8 +145,8 @@ def group_options(group: str, names, overrides: tuple[str, ...] = ()) -> dict[st
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    import dslearn.schemas  # noqa: F401  (the task schemas the configs name)
-    from dslearn.conf_paths import CONF_DIR
+    from dslearn.conf_paths import CONF_DIR  # (the task schemas the configs name are registered by the caller:
+    # the app, dslearn.api or a test imports dslearn.schemas)
 
     def _all() -> dict[str, DictConfig]:
         return {n: compose("config", overrides=[f"{group}={n}", *overrides])[group] for n in names}
@@ -206,6 +206,47 @@ SLOTS: dict[str, Any] = {
     "filter": lambda cfg, s: _filter_settings(cfg),
     "data": lambda cfg, s: _data_settings(cfg),
 }
+
+
+def register_slot(name: str, builder) -> None:
+    """Add a slot a study may name: ``builder(cfg, slots) -> object`` (``slots[name]`` gives the run's
+    other built objects). A task's own slots are registered by its schema module."""
+    if name in SLOTS and SLOTS[name] is not builder:
+        raise ValueError(f"slot {name!r} is registered already")
+    SLOTS[name] = builder
+
+
+def _model_options(cfg: DictConfig, s: "_Slots") -> dict[str, Any]:
+    """``{name: make(scenario, network, device=None)}`` for every ``conf/model`` option of ``task.models``:
+    a fresh model of that option per call, with the run's dtype (and device, unless given: ``meta`` for a
+    probe of shapes)."""
+    nodes = group_options("model", [str(m) for m in cfg.task.models])
+    dtype, dev = s["dtype"], s["device"]
+
+    def maker(node):
+        return lambda scenario, network, device=None: build_motion_model(node, scenario, network, dtype,
+                                                                         dev if device is None else device)
+
+    return {name: maker(node) for name, node in nodes.items()}
+
+
+def _observation_factory(cfg: DictConfig, s: "_Slots"):
+    """``make(network)``: a fresh observation model of the ``observation`` group for ``network``."""
+    node, dtype, dev = cfg.observation, s["dtype"], s["device"]
+    return lambda network: build_observation(node, network, dtype, dev)
+
+
+def _fusion_factory(cfg: DictConfig, s: "_Slots"):
+    """``make(network)``: the ``consensus`` group's fusion over ``network``'s graph."""
+    node = cfg.consensus
+    return lambda network: build_fusion(node, network)
+
+
+SLOTS.update({
+    "model_options": _model_options,
+    "observation_factory": _observation_factory,
+    "fusion_factory": _fusion_factory,
+})
 
 
 def build_study(cfg: DictConfig) -> Any:

@@ -34,8 +34,9 @@ LAYERS: list[tuple[str, ...]] = [
     ("learning/",),
     ("metrics/", "forecast"),
     ("studies/",),
+    ("compose",),
     ("schemas/",),
-    ("compose", "reports/", "callbacks", "reference"),
+    ("reports/", "callbacks", "reference"),
     ("run", "report", "api", "bench", "train_lstm", "tools/"),
 ]
 
@@ -58,8 +59,6 @@ KNOWN_UPWARD: frozenset[tuple[str, str]] = frozenset({
     ("studies/jiang_fg.py", "schemas/jiang_fg.py"),
     ("studies/liu_dgpt.py", "schemas/base.py"),
     ("studies/liu_dgpt.py", "schemas/liu_dgpt.py"),
-    ("schemas/core.py", "compose.py"),
-    ("schemas/ethucy_tracking.py", "compose.py"),
 })
 
 
