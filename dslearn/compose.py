@@ -242,10 +242,74 @@ def _fusion_factory(cfg: DictConfig, s: "_Slots"):
     return lambda network: build_fusion(node, network)
 
 
+def method_takes(cfg: DictConfig) -> tuple[str, ...]:
+    """The parts the method of ``cfg.filter`` takes (its engine's parameters among ``model``,
+    ``observation``, ``fusion``), named by their root groups (``fusion`` is the ``consensus`` group)."""
+    import inspect
+
+    from hydra.utils import get_object
+
+    target = cfg.filter.get("_target_")
+    if not target:
+        raise ConfigError("filter has no _target_ (the method its engine makes)")
+    try:
+        params = inspect.signature(get_object(str(target))).parameters
+    except Exception as e:  # noqa: BLE001
+        raise ConfigError(f"filter._target_={target!r} cannot be imported: {str(e).splitlines()[0]}") from None
+    group = {"model": "model", "observation": "observation", "fusion": "consensus"}
+    return tuple(g for p, g in group.items() if p in params)
+
+
+def _scenario_network(cfg: DictConfig, s: "_Slots"):
+    """The sensors of a matrix cell: the scenario's own network, else the ``network`` part's placement."""
+    scenario = s["scenario"]
+    return scenario.network if scenario.network is not None else s["network"]
+
+
+def _method(cfg: DictConfig, s: "_Slots"):
+    """The method of a matrix cell: the ``filter`` part's engine with the parts it takes, each sized for the
+    cell's scenario and sensors."""
+    scenario, net, dtype, dev = s["scenario"], s["scenario_network"], s["dtype"], s["device"]
+    makers = {
+        "model": lambda: build_motion_model(cfg.model, scenario, net, dtype, dev),
+        "model_name": lambda: str(cfg.model.name),
+        "observation": lambda: build_observation(cfg.observation, net, dtype, dev),
+        "fusion": lambda: build_fusion(cfg.consensus, net),
+        "fusion_name": lambda: str(cfg.consensus.name),
+        "network": lambda: net,
+        "scenario": lambda: scenario,
+        "dtype": lambda: dtype,
+        "device": lambda: dev,
+    }
+    import inspect
+
+    from hydra.utils import get_object
+
+    params = inspect.signature(get_object(str(cfg.filter._target_))).parameters
+    return build(cfg.filter, "filter", **{k: make() for k, make in makers.items() if k in params})
+
+
+def build_cell_parts(cfg: DictConfig, check_only: bool = False):
+    """The scenario, its sensors and the method of a matrix cell (``task=matrix``); a method that does not
+    fit the scenario is refused with the reason (with ``check_only``: on PyTorch's meta device, so no
+    memory is used and no random draw of the run is consumed)."""
+    slots = _Slots(cfg)
+    if check_only:
+        slots._built["device"] = torch.device("meta")
+    with torch.random.fork_rng(devices=[]):
+        method = slots["method"]
+    reason = method.fits(slots["scenario"].spec)
+    if reason is not None:
+        raise ConfigError(f"{method.label} does not fit scenario {slots['scenario'].spec.name}: {reason}")
+    return slots["scenario"], slots["scenario_network"], method
+
+
 SLOTS.update({
     "model_options": _model_options,
     "observation_factory": _observation_factory,
     "fusion_factory": _fusion_factory,
+    "scenario_network": _scenario_network,
+    "method": _method,
 })
 
 

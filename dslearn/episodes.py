@@ -4,8 +4,12 @@ measurements (the floor that simulation, filters, fusion and learning share)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 from torch import Tensor
+
+from dslearn.network import SensorNetwork
+from dslearn.types import StepContext
 
 
 @dataclass
@@ -59,3 +63,80 @@ class Episodes:
 
     def to(self, dtype, device) -> "Episodes":
         return Episodes(self.states.to(device, dtype), self.meas.to(device, dtype), self.visible.to(device))
+
+
+# ------------------------------------------------------------------------------------------------
+# the matrix: what a scenario declares, what every method returns
+
+#: kinds of measurement a scenario yields (what a method's observation side must handle)
+MEASUREMENTS = ("position", "squared_range", "terrain_altitude")
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    """What a scenario offers a method, declared (no tensors): the matrix decides by it whether a
+    method fits (:meth:`dslearn.methods.base.Method.fits`).
+
+    Attributes:
+        name: label in the tables (``yu``, ``s1``, ``jiang``, ``zara1``, ...).
+        measurement: one of :data:`MEASUREMENTS`: range-limited noisy positions of the targets, squared
+            ranges to fixed sensors (repeated samples per step), terrain altitude under each platform.
+        num_agents: ``A``, the targets (platforms) whose positions are estimated.
+        state: the layout of the true states, ``pv2d`` (per agent ``[px, py, vx, vy]``, ``Dx = 4A``) or
+            the scenario's own (``param2d``: a 2-D parameter per agent; ``platform``: a navigation state).
+        dt: seconds per step; steps: ``K`` (an episode has ``K + 1`` states).
+        units: of the positions (the RMSE's unit).
+        networked: the scenario has a communication graph between its nodes.
+        source: ``simulated`` or ``recorded`` (a data set).
+    """
+
+    name: str
+    measurement: str
+    num_agents: int
+    state: str
+    dt: float
+    steps: int
+    units: str = "m"
+    networked: bool = True
+    source: str = "simulated"
+
+
+@dataclass
+class Estimates:
+    """What a method returns for a batch of test episodes, reduced to what every method estimates: the
+    targets' positions (and, where the method has one, their covariance), comparable across methods.
+
+    Attributes:
+        mean: ``(N, B, K+1, A, 2)`` position estimates of ``N`` reporting nodes (every node of a
+            distributed filter; one for a method with a fusion centre).
+        cov: ``(N, B, K+1, A, 2, 2)`` their covariances, or ``None`` (no NEES then).
+        nodes: the ``N`` reporting nodes' names.
+        sensing: ``(N,)`` bool, the node senses (tables average over sensing nodes, Yu et al.'s "sensor
+            average"; a fusion centre counts as sensing).
+    """
+
+    mean: Tensor
+    cov: Tensor | None
+    nodes: list[str]
+    sensing: Tensor
+
+
+@runtime_checkable
+class Scenario(Protocol):
+    """A simulator or a data set, as the matrix uses it: it declares what it offers (``spec``), draws
+    episodes (the truth kept apart from the measurements) and tells where the targets are in a true
+    state. ``network`` is its own sensor network, or ``None`` where the run's ``network`` part places the
+    sensors (Yu et al.'s scenario)."""
+
+    spec: ScenarioSpec
+    network: SensorNetwork | None
+    area: tuple
+
+    def ctx(self) -> StepContext: ...
+
+    def sample(self, num: int, network: SensorNetwork, generator) -> Episodes:
+        """``num`` episodes measured by ``network``; ``generator``: a ``torch.Generator`` or per-episode
+        :class:`~dslearn.streams.Streams` (episode ``i`` then depends only on its own stream)."""
+
+    def positions(self, states: Tensor) -> Tensor:
+        """The targets' positions in true states: ``(B, K+1, Dx) -> (B, K+1, A, 2)``."""

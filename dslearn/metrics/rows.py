@@ -11,16 +11,22 @@ from dslearn.network import SensorNetwork
 
 
 def metric_rows(metrics: dict[str, Tensor], network: SensorNetwork, **keys) -> pd.DataFrame:
-    """Tidy rows of per-node, per-episode metrics ``{name: (S, B)}``: columns ``*keys, node,
-    node_kind, episode, metric, value`` (keys first, in their order, as constants)."""
+    """Tidy rows of per-node, per-episode metrics ``{name: (S, B)}`` of ``network``'s nodes: columns
+    ``*keys, node, node_kind, episode, metric, value`` (keys first, in their order, as constants)."""
+    kinds = ["sensor" if network.is_sensor[i] else "comm" for i in range(network.num_nodes)]
+    return node_rows(metrics, list(network.names), kinds, **keys)
+
+
+def node_rows(metrics: dict[str, Tensor], names: list[str], kinds: list[str], **keys) -> pd.DataFrame:
+    """Tidy rows of per-node, per-episode metrics ``{name: (N, B)}`` of nodes ``names`` of kinds ``kinds``:
+    columns ``*keys, node, node_kind, episode, metric, value`` (keys first, in their order, as constants)."""
     frames = []
-    s = network.num_nodes
-    kinds = ["sensor" if network.is_sensor[i] else "comm" for i in range(s)]
+    s = len(names)
     for name, val in metrics.items():
         v = val.detach().cpu().double()
         b = v.shape[1]
         frames.append(pd.DataFrame({
-            "node": [network.names[i] for i in range(s) for _ in range(b)],
+            "node": [names[i] for i in range(s) for _ in range(b)],
             "node_kind": [kinds[i] for i in range(s) for _ in range(b)],
             "episode": list(range(b)) * s,
             "metric": name,

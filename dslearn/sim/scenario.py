@@ -7,7 +7,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from dslearn.episodes import Episodes
+from dslearn.episodes import ScenarioSpec, Episodes
 from dslearn.errors import ConfigError, check_positive
 from dslearn.models.social_force import SOFTENING, SocialForce
 from dslearn.network import SensorNetwork
@@ -65,9 +65,22 @@ class SocialForceScenario:
         self.steps = int(round(steps))
         self.area = tuple(float(a) for a in area)
 
+    #: the sensors are placed by the run's ``network`` part (this scenario has none of its own)
+    network = None
+
     @property
     def state_dim(self) -> int:
         return AGENT_DIM * self.num_agents
+
+    @property
+    def spec(self) -> ScenarioSpec:
+        """What the scenario offers (:class:`~dslearn.episodes.ScenarioSpec`): positions of ``A`` agents
+        measured by range-limited sensors, states ``[p, v]`` per agent."""
+        return ScenarioSpec("yu", "position", self.num_agents, "pv2d", self.dt, self.steps)
+
+    def positions(self, states: Tensor) -> Tensor:
+        """``(B, K+1, 4A) -> (B, K+1, A, 2)``."""
+        return agents(states)[..., :2]
 
     def ctx(self) -> StepContext:
         return StepContext(dt=self.dt)
