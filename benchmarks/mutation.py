@@ -59,6 +59,14 @@ def export_head() -> None:
     link = WORK / "dslearn" / "conf"
     if not link.exists():
         link.symlink_to(Path("..") / "conf")
+    # verdicts of modules that no longer exist (moved or deleted since the last run) are dropped
+    tracked = set(subprocess.run(["git", "-C", str(ROOT), "ls-files"], capture_output=True, text=True,
+                                 check=True).stdout.split())
+    for meta in (WORK / "mutants").rglob("*.py.meta"):
+        module = str(meta.relative_to(WORK / "mutants"))[: -len(".meta")]
+        if module not in tracked:
+            for stale in (meta, meta.with_suffix(".spans"), WORK / "mutants" / module, WORK / module):
+                stale.unlink(missing_ok=True)
 
 
 def run(max_children: int) -> int:
