@@ -1,6 +1,7 @@
-r"""Trajectory forecasting: displacement errors, the constant-velocity baseline and the GP roll-outs
-of observed positions (``(M, T_obs, 2)`` pedestrian-windows, metres; the LSTM's batched prediction
-is :func:`dslearn.models.lstm.lstm_predict`).
+r"""Trajectory forecasting: the constant-velocity baseline and the GP roll-outs of observed positions
+(``(M, T_obs, 2)`` pedestrian-windows, metres; the LSTM's batched prediction is
+:func:`dslearn.models.lstm.lstm_predict`; the displacement errors against the truth are
+:mod:`dslearn.metrics.forecast`).
 
 Used by the ETH/UCY forecasting study (:mod:`dslearn.studies.ethucy_forecast`); everything here
 works on position tensors only (no data set, no config file).
@@ -13,15 +14,6 @@ from torch import Tensor
 
 from dslearn.models.gp import GPMotionModel
 from dslearn.models.gp_backends import OnlineGP
-
-
-def ade_fde(pred: Tensor, truth: Tensor) -> tuple[Tensor, Tensor]:
-    """Average and final displacement errors ``(..., T, 2), (..., T, 2) -> (...), (...)``.
-
-    ADE :math:`= \\frac1T \\sum_t \\|\\hat p_t - p_t\\|_2`, FDE :math:`= \\|\\hat p_T - p_T\\|_2` (metres).
-    """
-    err = (pred - truth).norm(dim=-1)
-    return err.mean(-1), err[..., -1]
 
 
 def constant_velocity(obs: Tensor, pred_len: int) -> Tensor:

@@ -797,6 +797,21 @@ def validate_job(cfg: DictConfig, lines=()) -> None:
     validate_config(cfg)
 
 
+def sweep_select(master: DictConfig):
+    """The function by which the sweep's sweeper chooses the combinations that become jobs (its ``select``
+    key, e.g. ``hydra/sweeper=matrix``: :func:`dslearn.schemas.matrix.select_cells`, the cells whose method
+    fits the scenario), ``None`` for a sweeper that runs every combination."""
+    name = OmegaConf.select(master, "hydra.sweeper.select", default=None)
+    if not name:
+        return None
+    from hydra.utils import get_object
+
+    try:
+        return get_object(str(name))
+    except Exception as e:  # noqa: BLE001 - hydra raises ImportError / plain Exception
+        raise ConfigError(f"hydra.sweeper.select={name!r} cannot be imported: {str(e).splitlines()[0]}") from None
+
+
 #: the root groups and keys of task ``liu_dgpt`` that became its own keys (:func:`_moved`)
 MOVED = {
     "tracker": ("task.tracker", "{}"),
@@ -841,8 +856,10 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
     Sweep overrides (``a=1,2``, ``range(...)``) and an experiment's sweep parameters are expanded
     and every combination is checked (:func:`~dslearn.schemas.core.validate_config`, which also
     builds the core study's parts), so a bad value anywhere in a sweep fails before its first
-    job runs. ``hydra.run.dir`` / ``hydra.sweep.dir`` must name a folder (or a place one can be
-    made) and the chosen launcher's plugin must be installed. Options that Hydra handles itself
+    job runs; a combination that the sweep's sweeper drops (``hydra/sweeper=matrix``: a method that does
+    not fit the scenario, :func:`sweep_select`) is no job.
+    ``hydra.run.dir`` / ``hydra.sweep.dir`` must name a folder (or a place one can be made) and the
+    chosen launcher's plugin must be installed. Options that Hydra handles itself
     (``--cfg``, ``--info``, ...) skip the check. For a single run, ``plan["run_dir"]`` is set to
     its output folder (``hydra.run.dir`` resolved; absent when it cannot be resolved here).
     """
@@ -885,6 +902,18 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
             def _compose(ov):
                 key = tuple(ov)
                 return seeded.pop(key) if key in seeded else compose("config", overrides=list(ov))
+
+            select = sweep_select(master) if multirun else None
+            if select is not None:  # the sweeper's choice (the matrix: the cells that fit); the others are no jobs
+                composed = {}
+
+                def _compose(ov, _plain=_compose):  # each combination composed once for both checks
+                    key = tuple(ov)
+                    if key not in composed:
+                        composed[key] = _plain(ov)
+                    return composed[key]
+
+                combos = select(combos, _compose)[0]
 
             def _visit(cfg, lines=()):
                 validate_job(cfg, lines)

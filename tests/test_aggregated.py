@@ -121,16 +121,9 @@ def test_no_data_gives_prior_and_bad_names():
 
 
 def test_tiny_yu_run_through_the_core_builder():
-    from hydra import compose, initialize_config_dir
-    import pathlib
+    from dslearn import api
 
-    from dslearn.studies.yu import run
-
-    conf = str(pathlib.Path(__file__).resolve().parents[1] / "conf")
-    with initialize_config_dir(config_dir=conf, version_base=None):
-        cfg = compose("config", overrides=["model=gp_increment_rbcm", "consensus=individual",
-                                           "data.train_episodes=2", "data.test_episodes=2"])
-    df = run(cfg)
+    df = api.run("model=gp_increment_rbcm", "consensus=individual", "data.train_episodes=2", "data.test_episodes=2")
     assert set(df["model"]) == {"gp_increment_rbcm"}
     per = df.pivot_table(index=["node", "episode"], columns="metric", values="value")
     assert len(per) == 10 * 2 and per.map(math.isfinite).all().all()

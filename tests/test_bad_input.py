@@ -354,7 +354,8 @@ def test_bad_entry_and_network(make_cfg):
         resolve_entry("nomodule")
     with pytest.raises(ConfigError, match="is not a registered study"):
         resolve_entry("dslearn.nosuch:run")
-    assert resolve_entry("dslearn.studies.jiang_fg:run").__name__ == "run"
+    with pytest.raises(ConfigError, match="is not a registered study"):  # a component now: no entry function
+        resolve_entry("dslearn.studies.jiang_fg:run")
     cfg = make_cfg("network.comm_radius=0.5")
     with pytest.raises(ConfigError, match="disconnected"):
         api.build_study(cfg)

@@ -79,9 +79,8 @@ def test_jiang_ablation_fields_are_the_tracker_settings():
 def test_jiang_every_option_composes_and_instantiates():
     """Each choice of the fg / tracker settings composes, passes the checks and builds TrackerSettings; the
     README's '+task.ablations.<name>={...}' override works and its values reach the settings typed."""
+    from dslearn import api
     from dslearn.learning.factor_graph.crlb import CRLB_FORMS
-    from dslearn.learning.factor_graph.engine import TrackerSettings
-    from dslearn.studies.jiang_fg import _params
 
     options = [f"task.fg.crlb_form={c}" for c in CRLB_FORMS] + [
         "task.fg.schedule=sequential", "task.fg.graph=joint", "task.fg.taylor_point=guess",
@@ -90,16 +89,18 @@ def test_jiang_every_option_composes_and_instantiates():
     for ov in options:
         cfg = _compose("jiang_fg", ov, "+task.ablations.mine={relinearize:true,damping:0,prior_var:null,max_iter:7}")
         validate_config(cfg)
-        p = _params(cfg.task)
-        s = TrackerSettings.from_config(**p["settings"])
+        study = api.build_study(cfg)  # the settings and the typed ablations, as the composition root fills them
+        s = study.tracker_settings()
         key, val = ov.split("=")
         got = getattr(s, key.split(".")[-1])
         assert str(got).lower() == val.lower() or got == float(val), (ov, got)
-        mine, its = p["ablations"]["mine"]
-        m = TrackerSettings.from_config(**mine)
+        runs = study.ablation_runs()
+        m, its = runs["mine"]
         assert its == 7 and m.relinearize is True and m.prior_var == float("inf")
         assert isinstance(m.damping, float) and m.damping == 0.0
-        assert set(p["ablations"]) == {"mine", *OmegaConf.load(CONF_DIR / "task" / "jiang_fg.yaml").ablations}
+        assert m.num_samples == s.num_samples and m.obs_var == s.obs_var  # the keys it leaves out: the main grid's
+        assert set(runs) == {"mine", *OmegaConf.load(CONF_DIR / "task" / "jiang_fg.yaml").ablations}
+        assert runs["converged_fixed_point"][1] == 100 and runs["paper"][1] == cfg.task.max_iter
 
 
 def test_braga_weight_options_compose_and_build():
@@ -113,7 +114,7 @@ def test_braga_weight_options_compose_and_build():
         over = [f"task.consensus.weights={rule}", *over]
         cfg = _compose("braga_tbn", *over)
         validate_config(cfg)
-        return tbn_params(OmegaConf.to_container(cfg.task, resolve=True))["weights"]
+        return tbn_params(OmegaConf.to_object(cfg.task)).weights  # the study's typed settings
 
     def same(w, rows):
         torch.testing.assert_close(w, torch.tensor(rows, dtype=torch.float64), rtol=0, atol=1e-15)
@@ -161,9 +162,42 @@ def test_braga_init_mode_true_from_the_command_line():
 
     cfg = _compose("braga_tbn", "task.em.init_mode=true")
     validate_config(cfg)
-    assert tbn_params(OmegaConf.to_container(cfg.task, resolve=True))["init_mode"] == "true"
+    assert OmegaConf.to_object(cfg.task).em.init_mode is True
+    assert tbn_params(OmegaConf.to_object(cfg.task)).init_mode == "true"
+    assert tbn_params(OmegaConf.to_container(cfg.task, resolve=True)).init_mode == "true"
     uniform = _compose("braga_tbn", "task.em.init_mode=uniform").task
-    assert tbn_params(OmegaConf.to_container(uniform, resolve=True))["init_mode"] == "uniform"
+    assert tbn_params(OmegaConf.to_object(uniform)).init_mode == "uniform"
+
+
+def test_braga_settings_and_plain_values_give_the_same_harness_params():
+    """The harness reads the study's typed settings (``BragaTask``) and the same values as plain dicts alike,
+    with every value of the configuration (not a default) where the task sets one."""
+    import dataclasses
+
+    from dslearn.learning.online_em import tbn_params
+    from dslearn.studies.braga_tbn import BragaTask
+
+    cfg = _compose("braga_tbn", "task.steps=1230", "task.dt=0.04", "task.network.edges=[[0,1],[1,2],[2,3]]",
+                   "task.modes.mu_init=[-1.0,7.0]", "task.backward_kernel.dtype=float32", "task.em.burn_in=9",
+                   "task.terrain.seed_offset=5", "task.start=[100.0,200.0]")
+    validate_config(cfg)
+    settings = OmegaConf.to_object(cfg.task)
+    assert type(settings) is BragaTask and settings.modes.mu_init == [-1.0, 7.0]
+    typed, plain = tbn_params(settings), tbn_params(OmegaConf.to_container(cfg.task, resolve=True))
+    for f in dataclasses.fields(typed):
+        a, b = getattr(typed, f.name), getattr(plain, f.name)
+        if isinstance(a, torch.Tensor):
+            assert torch.equal(a, b), f.name
+        elif f.name in ("truth", "init"):
+            assert all(torch.equal(getattr(a, k), getattr(b, k)) for k in ("mu", "sigma", "pi")), f.name
+        else:
+            assert a == b, f.name
+    assert (typed.steps, typed.dt, typed.burn_in, typed.terrain_seed_offset, typed.start) == (1230, 0.04, 9, 5,
+                                                                                             (100.0, 200.0))
+    assert typed.kernel_dtype is torch.float32 and typed.init.mu.tolist() == [-1.0, 7.0]
+    assert typed.adj.tolist() == [[0, 1, 0, 0], [1, 0, 1, 0], [0, 1, 0, 1], [0, 0, 1, 0]]
+    with pytest.raises(TypeError, match="tbn_params"):
+        tbn_params(cfg.task)  # a config node is neither: the composition root converts it
 
 
 def test_run_tbn_takes_no_truth():

@@ -59,11 +59,11 @@ def _uniform(adj):
 
 
 def _plan(cfg):
+    from dslearn import api
     from dslearn.schemas import validate_task
-    from dslearn.studies import liu_dgpt
 
     validate_task(cfg)
-    return liu_dgpt.plan(cfg)
+    return api.build_study(cfg).plan()
 
 
 def _check_data(option, cfg, world):  # Yu et al. V-D: 200 + 50 episodes; small: 30 + 20
@@ -115,7 +115,8 @@ def _check_lstm(option, cfg, world):
 
 
 TASKS = {"braga_tbn": "BragaTask", "ethucy_forecast": "EthucyForecastTask", "ethucy_tracking": "EthucyTrackingTask",
-         "jiang_fg": "JiangTask", "liu_dgpt": "LiuDgpt", "yu": "YuTask", "yu_faults": "FaultTask"}
+         "jiang_fg": "JiangTask", "liu_dgpt": "LiuDgpt", "yu": "YuTask", "yu_faults": "FaultTask",
+         "matrix": "MatrixSettings"}
 
 
 def _check_task(option, cfg, world):  # the study's schema and its class (or entry point) in dslearn.studies.<task>
@@ -138,6 +139,12 @@ def _check_filter(option, cfg, world):
     from dslearn.filters.information import ExtendedPredict
     from dslearn.filters.ukf import UnscentedPredict
 
+    if option == "dgpt":  # Liu et al.'s tracker: a method of its own (task=matrix), no prediction step
+        from dslearn.methods.dgpt import DGPTMethod
+
+        assert get_object(cfg.filter._target_) is DGPTMethod and "predict" not in cfg.filter
+        assert (cfg.filter.window, cfg.filter.gp_input, cfg.filter.hyper.optimizer) == (10, "temporal", "adam")
+        return
     f = cfg.filter  # ukf inherits the priors and the learning gate of the default
     assert (f.prior_pos_std, f.prior_vel_std, f.learn_gate_std) == (1000.0, 1000.0, 2.0)
     step = build_predict(cfg)
@@ -229,11 +236,18 @@ def _check_observation(option, cfg, world):
 FUSION_CLASSES = {"individual": "Individual", "ce": "ConsensusOnEstimates", "cm": "ConsensusOnMeasurements",
                   "ci": "ConsensusOnInformation", "hybrid": "HybridConsensus", "hybrid_nodes": "HybridConsensus",
                   "centralized": "Centralized"}
+#: the fusion centre's aggregation rules of Liu et al.'s DGPT (filter=dgpt): kind "aggregation"
+AGGREGATIONS = {"poe", "gpoe", "bcm", "rbcm"}
 
 
 def _check_consensus(option, cfg, world):  # L = 4 rounds of the paper's weights; hybrid_nodes: omega = S
     _, _, network = world
     c = cfg.consensus
+    if option in AGGREGATIONS:  # an aggregation rule: the rule it names, raw Eq. 7 weights
+        f = build_fusion(c, network)
+        assert type(f).__name__ == "AggregationRule" and f.kind == "aggregation"
+        assert (f.rule, f.name, f.normalise_beta) == (option, option, False)
+        return
     assert (c.name, c.iterations, c.weights) == (option.replace("_nodes", ""), 4, "uniform")
     assert c.omega == ("nodes" if option == "hybrid_nodes" else "one")
     f = build_fusion(c, network)
@@ -266,21 +280,54 @@ def _check_scenario(option, cfg, world):
         sc = build_scenario(cfg)
         assert (sc.num_agents, sc.dt, sc.steps, tuple(sc.area), sc.process_std) == (2, 0.25, 12, (0.0, 8.0, 0.0, 8.0), 0.001)
         return
+    if option.startswith("liu_"):  # Liu et al.'s S1-S3 as a matrix scenario: one target, 200 sensors, its own field
+        cfg = _compose("task=matrix", "method=dgpt_gpoe", f"scenario={option}")
+        sc = build_scenario(cfg)
+        spec = sc.spec
+        assert (spec.name, spec.measurement, spec.num_agents, spec.state, spec.dt) == \
+            (option[4:], "position", 1, "pv2d", 1.0)
+        net = sc.network  # the scenario's own sensor field: 200 sensors with a 50 m range, sigma 2 m, in 1000 m
+        assert (net.num_nodes, int(net.is_sensor.sum()), net.sensing_range, net.meas_std) == (200, 200, 50.0, 2.0)
+        assert sc.area == (-500.0, 500.0, -500.0, 500.0) and bool((net.positions.abs() <= 500.0).all())
+        assert cfg.scenario.trajectory._target_ == f"dslearn.sim.manoeuvres.generate_{option[4:]}"
+        return
     # a Liu et al. scenario: restricts the study to its generator, run with task.scenario_params.<option>
     cfg = _compose(*LIU, f"scenario={option}")
     target = f"dslearn.sim.manoeuvres.generate_{option}"
     assert cfg.scenario._target_ == cfg.task.scenario_params[option]._target_ == target
-    assert _plan(cfg)["scenarios"] == [option]
+    assert _plan(cfg).scenarios == [option]
 
 
-CHECKS = {"data": _check_data, "dataset": _check_dataset, "folds": _check_folds,
+PRESET_FILTERS = {"ekf": "default", "ukf": "ukf", "dgpt": "dgpt"}
+PRESET_MODELS = {"lin": "lin", "sfm": "sfm", "gp": "gp_increment", "lstm": "lstm", "social_lstm": "social_lstm"}
+PRESET_FUSIONS = {"individual", "hybrid", "centralized"}
+
+
+def _check_method(option, cfg, world):
+    """A preset selects the parts its name says: <filter>_<model>_<fusion> (dgpt_<aggregation rule>)."""
+    head, _, rest = option.partition("_")
+    filt = _compose(f"filter={PRESET_FILTERS[head]}").filter
+    assert cfg.filter == filt  # the filter option, every key
+    if head == "dgpt":
+        assert rest in AGGREGATIONS and cfg.consensus == _compose(f"consensus={rest}").consensus
+        return
+    model, _, fusion = rest.rpartition("_")
+    assert fusion in PRESET_FUSIONS and cfg.consensus == _compose(f"consensus={fusion}").consensus
+    assert cfg.model == _compose(f"model={PRESET_MODELS[model]}").model
+    assert cfg.observation == _compose().observation  # the linear position sensor
+
+
+CHECKS = {"data": _check_data, "method": _check_method, "dataset": _check_dataset, "folds": _check_folds,
           "lstm": _check_lstm, "task": _check_task, "filter": _check_filter, "model": _check_model,
           "observation": _check_observation, "consensus": _check_consensus, "network": _check_network,
           "scenario": _check_scenario}
 EXPECTED_OPTIONS = {"data": {"paper", "small"}, "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
-                    "task": set(TASKS), "filter": {"default", "ukf"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
-                    "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES),
-                    "network": {"yu", "yu_blind"}, "scenario": {"s1", "s2", "s3", "yu_two_agents"}}
+                    "task": set(TASKS), "filter": {"default", "ukf", "dgpt"},
+                    "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
+                    | {"dgpt_gpoe", "dgpt_rbcm"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
+                    "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS,
+                    "network": {"yu", "yu_blind"},
+                    "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3"}}
 
 
 def test_every_option_has_its_expected_values():
@@ -309,6 +356,12 @@ def test_every_option_composes_and_names_an_importable_part(group, option, yu_wo
                 walk(v, f"{where}.{k}")
 
     walk(spec, group)
+    if group == "task" and "_target_" in spec:  # a study: its parameters are slots the composition root fills
+        from dslearn.compose import SLOTS
+
+        params = inspect.signature(get_object(spec["_target_"])).parameters
+        assert set(params) <= set(SLOTS), sorted(set(params) - set(SLOTS))
+        targets = [(w, t) for w, t in targets if w != "task"]
     for where, t in targets:
         fn = get_object(t["_target_"])  # importable
         params = inspect.signature(fn).parameters
@@ -376,7 +429,7 @@ def test_observation_model_contract(option, yu_world):
 
 
 # --------------------------------------------------------------------------------------- fusion
-@pytest.mark.parametrize("option", _options("consensus"))
+@pytest.mark.parametrize("option", [o for o in _options("consensus") if o not in AGGREGATIONS])
 def test_fusion_contract(option, yu_world):
     """Every fusion: row-stochastic weights (doubly stochastic for the symmetric rules; the paper's
     uniform 1/(|N_i|+1) rule is not); SPD symmetric fused information; when every node
@@ -404,7 +457,7 @@ def test_fusion_contract(option, yu_world):
 
 
 # ---------------------------------------------------------------------------- filter: predict
-@pytest.mark.parametrize("option", _options("filter"))
+@pytest.mark.parametrize("option", [o for o in _options("filter") if o != "dgpt"])  # dgpt: no prediction step
 def test_predict_step_contract(option, yu_world):
     """Every prediction step equals the Kalman prediction for the linear (constant-velocity) model."""
     from dslearn.compose import build_predict

@@ -207,6 +207,9 @@ def test_both_real_data_studies_run_on_a_new_data_set(tmp_path):
     assert len(exact) == 4 and (exact.value < 1e-9).all(), exact
     text = (out / "ethucy_forecast.md").read_text()
     assert "Walkers (synthetic)" in text and (out / "report.md").is_file()
+    # the LSTM's learning curves go to the run folder (task.curves_file, relative: inside it)
+    curves = pd.read_csv(out / "learning_curves.csv")
+    assert set(curves.model) == {"lstm"} and set(curves.scene) == {"walkers"} and curves.epoch.tolist() == [1, 2]
     # tracking (Tables III-IV analogue) on the same data set
     res, out = _run_and_report(
         tmp_path, "tracking", "experiment=real_tables", "task.scenes=[walkers]", "task.train_episodes=3",

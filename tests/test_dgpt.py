@@ -34,6 +34,7 @@ from dslearn.errors import ConfigError
 from dslearn.reports import liu_dgpt as liu_report
 from dslearn.schemas import validate_task
 from dslearn.studies import liu_dgpt
+from dslearn import api
 
 D = torch.float64
 TOL = dict(rtol=1e-10, atol=1e-10)
@@ -406,7 +407,7 @@ def _cfg(*overrides, **task):
 
 @pytest.mark.parametrize("gp_input", ["temporal", "spatiotemporal"])
 def test_tiny_end_to_end(gp_input, tmp_path):
-    df = liu_dgpt.run(_cfg(gp_input=gp_input))
+    df = _run(_cfg(gp_input=gp_input))
     for col in ("episode", "model", "consensus", "node", "scenario", "noise", "metric", "value"):
         assert col in df.columns
     assert df["value"].dtype == float
@@ -431,11 +432,40 @@ def test_tiny_end_to_end(gp_input, tmp_path):
     assert ((cov >= 0) & (cov <= 1)).all()
     assert set(sc["consensus"]) == {"-", "poe", "gpoe", "bcm", "rbcm", "grbcm"}
     if gp_input == "temporal":  # reproducible from the seed
-        df2 = liu_dgpt.run(_cfg(gp_input=gp_input))
+        df2 = _run(_cfg(gp_input=gp_input))
         pd.testing.assert_frame_equal(df.reset_index(drop=True), df2.reset_index(drop=True))
     df["task"] = "liu_dgpt"
     md = liu_report.report(df, df, tmp_path)
     assert "DGPT-rBCM" in md and "DGPT-grBCM" in md and any(p.suffix == ".png" for p in tmp_path.iterdir())
+
+
+def test_dgpt_metrics_closed_forms():
+    """One episode, one method, 4 steps, first detection at step 1: the errors count at steps 2-3 (the
+    predictive estimate was made with data), ``_covered`` at step 3 alone (detected); NRMSE divides by
+    the true coordinate's range; coverage counts both coordinates of the counted steps."""
+    from dslearn.filters.dgpt import TrackResult
+    from dslearn.metrics.regression import dgpt_metrics
+
+    truth = t([[0.0, 0.0], [1.0, 2.0], [2.0, 2.0], [3.0, 4.0]])[None]               # (1, 4, 2): ranges 3, 4
+    err_u = t([[100.0, -100.0], [50.0, 50.0], [1.0, 2.0], [3.0, 0.0]])[None, None]    # steps 0-1 do not count
+    avail = torch.tensor([[[False, True, False, True], [False, False, False, True]]])  # (1, S=2, 4)
+    one = torch.ones(1, 1, 4, 2, dtype=D)
+    res = TrackResult(upd_mean=truth[:, None] + err_u, upd_var=one.clone(), pred_mean=truth[:, None] + one,
+                      pred_var=one.clone(), upd_bound=2 * one, pred_bound=0.5 * one,
+                      n_experts=torch.tensor([[5, 6, 7, 8]]), methods=["poe"])
+    m = {k: float(v[0, 0]) for k, v in dgpt_metrics(res, truth, avail, 0.05).items()}
+    assert m["rmse_x_updated"] == pytest.approx(math.sqrt(5.0), rel=1e-15)          # errors 1, 3
+    assert m["rmse_y_updated"] == pytest.approx(math.sqrt(2.0), rel=1e-15)          # errors 2, 0
+    assert m["rmse_x_updated_covered"] == 3.0 and m["rmse_y_updated_covered"] == 0.0
+    assert m["nrmse_x_updated"] == pytest.approx(math.sqrt(5.0) / 3, rel=1e-15)
+    assert m["nrmse_y_updated"] == pytest.approx(math.sqrt(2.0) / 4, rel=1e-15)
+    assert m["rmse_x_predictive"] == m["rmse_y_predictive"] == 1.0 and m["nrmse_y_predictive"] == 0.25
+    assert m["ucb_coverage"] == 0.75                  # |3| > 2 at step 3 (x); the other three within
+    assert m["ucb_coverage_predictive"] == 0.0        # |1| > 0.5 everywhere
+    assert m["ucb_mean_bound"] == 2.0
+    assert m["coverage_3sigma"] == 1.0 and m["coverage_3sigma_predictive"] == 1.0
+    assert m["frac_steps_detected"] == 0.5 and m["mean_experts"] == 7.5
+    assert m["ucb_nominal"] == pytest.approx(0.95, rel=1e-15)
 
 
 @pytest.mark.parametrize("field,value", [
@@ -462,32 +492,36 @@ def _compose(*overrides):
 
 def _plan(cfg):
     validate_task(cfg)
-    return liu_dgpt.plan(cfg)
+    return api.build_study(cfg).plan()
+
+
+def _run(cfg):
+    """The study of ``cfg`` as the composition root builds it (its slots filled), run."""
+    return api.build_study(cfg).run()
 
 
 @pytest.mark.parametrize("base", ["experiment=liu_table1", "experiment=liu_table2", "task=liu_dgpt"])
 def test_hydra_cell_spelling_selects_one_cell(base):
     cfg = _compose(base, "task.tracker=dgpt", "task.aggregations=[rbcm]", "task.gp_input=spatiotemporal", "scenario=s3",
                    "task.noises=[2]")
-    validate_task(cfg)
-    p = liu_dgpt.plan(cfg)
-    assert p["gp_input"] == "spatiotemporal" and p["aggregations"] == ["rbcm"]
-    assert p["scenarios"] == ["s3"] and p["noises"] == [2.0] and p["centralised"] is False
-    assert p["trace"]["scenario"] == "s3" and p["trace"]["noise"] == 2.0  # the cell traces itself
+    p = _plan(cfg)
+    assert p.gp_input == "spatiotemporal" and p.aggregations == ["rbcm"]
+    assert p.scenarios == ["s3"] and p.noises == [2.0] and p.centralised is False
+    assert p.trace.scenario == "s3" and p.trace.noise == 2.0  # the cell traces itself
     p = _plan(_compose(base, "task.tracker=gp", "task.gp_input=temporal", "scenario=s1", "task.noises=[4.0]"))
-    assert p["aggregations"] == [] and p["centralised"] is True and p["gp_input"] == "temporal"
-    assert p["scenarios"] == ["s1"] and p["noises"] == [4.0]
+    assert p.aggregations == [] and p.centralised is True and p.gp_input == "temporal"
+    assert p.scenarios == ["s1"] and p.noises == [4.0]
     p = _plan(_compose(base, "task.aggregations=[grbcm]"))  # no tracker: + standard GP
-    assert p["aggregations"] == ["grbcm"] and p["centralised"] is True
+    assert p.aggregations == ["grbcm"] and p.centralised is True
 
 
 def test_hydra_defaults_run_the_full_grid():
     p = _plan(_compose("experiment=liu_table1"))  # scenario = the Yu default
-    assert p["scenarios"] == ["s1", "s2", "s3"] and p["noises"] == [1.0, 2.0, 4.0]
-    assert p["aggregations"] == ["poe", "gpoe", "bcm", "rbcm", "grbcm"] and p["centralised"]
-    assert p["gp_input"] == "temporal"
-    assert _plan(_compose("experiment=liu_table2"))["gp_input"] == "spatiotemporal"
-    assert _plan(_compose("experiment=liu_table1", "task.gp_input=spatiotemporal"))["gp_input"] == "spatiotemporal"
+    assert p.scenarios == ["s1", "s2", "s3"] and p.noises == [1.0, 2.0, 4.0]
+    assert p.aggregations == ["poe", "gpoe", "bcm", "rbcm", "grbcm"] and p.centralised
+    assert p.gp_input == "temporal"
+    assert _plan(_compose("experiment=liu_table2")).gp_input == "spatiotemporal"
+    assert _plan(_compose("experiment=liu_table1", "task.gp_input=spatiotemporal")).gp_input == "spatiotemporal"
     cfg = _compose("experiment=liu_grid")
     assert cfg.study == "liu_grid" and cfg.task.mc_runs == 100
 
@@ -505,10 +539,10 @@ def test_hydra_unknown_values_give_clear_errors():
 
 def test_tracker_gp_alone_end_to_end():
     cfg = _cfg("task.tracker=gp", scenarios=["s2"], noises=[2.0])
-    df = liu_dgpt.run(cfg)
+    df = _run(cfg)
     assert set(df["model"]) == {"standard_gp"} and set(df["scenario"]) == {"s2"}
     cfg2 = _cfg(scenarios=["s2"], noises=[2.0])  # the same episodes inside the full run
-    full = liu_dgpt.run(cfg2)
+    full = _run(cfg2)
     a = df[(df["metric"] == "nrmse_x_updated")]["value"].to_numpy()
     b = full[(full["metric"] == "nrmse_x_updated") & (full["model"] == "standard_gp")]["value"].to_numpy()
     torch.testing.assert_close(torch.tensor(a), torch.tensor(b), rtol=1e-9, atol=1e-12)
@@ -639,7 +673,7 @@ def test_episode_alone_equals_episode_in_any_batch(opt, gp_input, tol):
     (stop / accept) that round-off can flip, moving a result by up to one final Newton step
     (measured up to ~1e-7 relative): 1e-6 there (README)."""
     p, (truth, meas, avail, window, ek, keys) = _episodes(opt=opt)
-    kw = dict(gp_input=gp_input, aggregations=p["aggregations"], hyper=p["hyper"])
+    kw = dict(gp_input=gp_input, aggregations=p.aggregations, hyper=p.hyper)
 
     def run(sel):
         sel = torch.tensor(sel)
@@ -659,9 +693,9 @@ def test_episode_alone_equals_episode_in_any_batch(opt, gp_input, tol):
 def test_run_does_not_depend_on_batch_runs_mc_runs_or_the_other_cells():
     cfg = _cfg(num_steps=20)
     cfg.task.mc_runs, cfg.task.batch_runs = 3, 3
-    a = liu_dgpt.run(cfg)
+    a = _run(cfg)
     cfg.task.batch_runs = 1
-    b = liu_dgpt.run(cfg)
+    b = _run(cfg)
     key = ["scenario", "noise", "episode", "model", "consensus", "metric", "step"]
 
     def vals(df, **sel):
@@ -672,7 +706,7 @@ def test_run_does_not_depend_on_batch_runs_mc_runs_or_the_other_cells():
     torch.testing.assert_close(torch.tensor(vals(a)), torch.tensor(vals(b)), rtol=1e-9, atol=1e-9)
     cfg.task.mc_runs, cfg.task.batch_runs = 2, 50
     cfg.task.scenarios, cfg.task.noises = ["s3"], [4.0]  # one cell, fewer runs
-    c = liu_dgpt.run(cfg)
+    c = _run(cfg)
     ref = a[(a["scenario"] == "s3") & (a["noise"] == 4.0) & (a["episode"] < 2) & (a["step"] < 0)]
     torch.testing.assert_close(torch.tensor(vals(c[c["step"] < 0])), torch.tensor(vals(ref)),
                                rtol=1e-9, atol=1e-9)
@@ -682,17 +716,17 @@ def test_run_does_not_depend_on_batch_runs_mc_runs_or_the_other_cells():
 def test_gap_check_records_distance_below_the_maximum(opt):
     p, (truth, meas, avail, window, ek, keys) = _episodes(n_runs=2, steps=25, opt=opt, gap_check=True)
     res = track(meas, avail, window, gp_input="temporal", aggregations=["poe", "rbcm"],
-                hyper=p["hyper"], episode_keys=ek)
+                hyper=p.hyper, episode_keys=ek)
     lw = res.learning[:, None, None, :].expand_as(res.gap_e)
     gap = res.gap_e[lw]
     assert torch.isfinite(gap).all() and (gap >= -1e-8).all()  # the maximum is never below
     assert torch.isnan(res.gap_e[~lw]).all()
     nz = res.noise_mle_e[lw]
-    assert (nz >= p["hyper"].min_noise * (1 - 1e-12)).all() and (nz <= p["hyper"].max_noise).all()
+    assert (nz >= p.hyper.min_noise * (1 - 1e-12)).all() and (nz <= p.hyper.max_noise).all()
     if opt == "newton":  # its own solution: the reference solve starts there and barely moves
-        conv = res.grad_e[lw] <= p["hyper"].tol
+        conv = res.grad_e[lw] <= p.hyper.tol
         assert conv.float().mean() > 0.9 and gap[conv].median() < 1e-6
-    df = liu_dgpt.run(_cfg(**{"hyper.optimizer": opt, "hyper.gap_check": True}))
+    df = _run(_cfg(**{"hyper.optimizer": opt, "hyper.gap_check": True}))
     for met in ("ml_gap_median", "ml_gap_max", "noise_var_mle", "hyper_iters", "hyper_noise_var"):
         sub = df[df["metric"] == met]["value"]
         assert len(sub) and sub.notna().all()

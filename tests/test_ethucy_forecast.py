@@ -1,5 +1,6 @@
 """ETH/UCY forecasting study: metrics, baselines, GP helpers, tiny end-to-end run and report."""
 
+import dataclasses
 import math
 
 import pandas as pd
@@ -10,14 +11,17 @@ from hydra.errors import ConfigCompositionException
 
 import dslearn.forecast as fc
 import dslearn.reports.ethucy_forecast as rep
+from omegaconf import OmegaConf
 from dslearn.schemas.core import CONF_DIR
 from dslearn.data import window_tensors as dw
 from dslearn.data.ethucy import data_available
 from dslearn.errors import ConfigError
+from dslearn.metrics.forecast import ade_fde, forecast_row, forecast_scores
 from dslearn.models.gp_backends.exact import OnlineGP
 from dslearn.models.gp import GPMotionModel
 from dslearn.schemas import validate_task
 from dslearn.schemas.datasets import packaged_dataset
+from dslearn.schemas.ethucy_forecast import curves_path
 from dslearn.studies import ethucy_forecast as ef
 from dslearn.types import StepContext
 
@@ -27,12 +31,53 @@ F64 = torch.float64
 def test_ade_fde_hand_computed():
     truth = torch.zeros(3, 2, dtype=F64)
     pred = torch.tensor([[3.0, 4.0], [0.0, 1.0], [0.0, 0.0]], dtype=F64)  # errors 5, 1, 0
-    ade, fde = fc.ade_fde(pred, truth)
+    ade, fde = ade_fde(pred, truth)
     assert ade.item() == pytest.approx(2.0) and fde.item() == 0.0
     # a constant 3-4-5 offset: ADE = FDE = 5; batch dims preserved
     t = torch.randn(4, 5, 12, 2, dtype=F64)
-    ade, fde = fc.ade_fde(t + torch.tensor([3.0, 4.0], dtype=F64), t)
+    ade, fde = ade_fde(t + torch.tensor([3.0, 4.0], dtype=F64), t)
     assert ade.shape == (4, 5) and torch.allclose(ade, torch.full_like(ade, 5.0)) and torch.allclose(fde, torch.full_like(fde, 5.0))
+
+
+def test_forecast_scores_and_rows_by_hand():
+    # two pedestrian-windows of 3 steps: errors (5, 0, 1) and (0, 0, 2) m -> ADE (2, 2/3), FDE (1, 2)
+    truth = torch.zeros(2, 3, 2, dtype=F64)
+    pred = torch.tensor([[[3.0, 4.0], [0.0, 0.0], [0.0, 1.0]], [[0.0, 0.0], [0.0, 0.0], [2.0, 0.0]]])  # float32
+    got = forecast_scores(pred, truth)
+    assert list(got) == ["ade", "fde", "count"]
+    assert got["ade"] == pytest.approx((2.0 + 2.0 / 3.0) / 2, rel=1e-15) and got["fde"] == 1.5 and got["count"] == 2
+    bad = pred.clone()
+    bad[1, 2, 0] = float("nan")
+    with pytest.raises(FloatingPointError, match="non-finite"):
+        forecast_scores(bad, truth)
+    row = forecast_row("gp", "zara1", 3, "count", 2)
+    assert row == {"model": "gp", "consensus": "-", "node": "avg", "scene": "zara1", "metric": "count", "value": 2.0,
+                   "episode": 3} and list(row) == ["model", "consensus", "node", "scene", "metric", "value", "episode"]
+
+
+def test_the_study_reads_no_configuration_and_gets_its_parts_from_the_composition_root():
+    """The study module names no config machinery; the composition root hands it typed settings, the data
+    sets of ``task.datasets`` as specs and where the curves go (nowhere for a relative name outside a run)."""
+    import ast
+    import re
+    from pathlib import Path
+
+    from dslearn.api import build_study
+    from dslearn.data.datasets import task_datasets
+
+    text = Path(ef.__file__).read_text(encoding="utf-8")
+    assert not re.search(r"omegaconf|hydra|DictConfig|\bcfg\.|to_plain", text, re.IGNORECASE)
+    tree = ast.parse(text)
+    mods = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+    mods += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+    assert not [m for m in mods if m and m.split(".")[:2] in (["dslearn", "compose"], ["dslearn", "schemas"])]
+    cfg = _tiny_cfg(**{"lstm.epochs": 2, "curves_file": "curves.csv", "datasets.zara1.units": "cm"})
+    study = build_study(cfg)
+    assert isinstance(study.settings, ef.ForecastSettings) and study.settings.lstm.epochs == 2
+    assert study.ethucy_forecast_datasets == task_datasets(cfg.task) and \
+        study.ethucy_forecast_datasets["zara1"].units == "cm"
+    assert study.ethucy_forecast_curves_file is None  # relative, and no run folder outside dslearn-run
+    assert (study.seed, study.dtype, study.device) == (0, torch.float64, torch.device("cpu"))
 
 
 def test_constant_velocity_exact_on_constant_velocity_tracks():
@@ -41,7 +86,7 @@ def test_constant_velocity_exact_on_constant_velocity_tracks():
     tr = p0[:, None] + torch.arange(20, dtype=F64)[None, :, None] * v[:, None]
     pred = fc.constant_velocity(tr[:, :8], 12)
     assert pred.shape == (50, 12, 2)
-    ade, fde = fc.ade_fde(pred, tr[:, 8:])
+    ade, fde = ade_fde(pred, tr[:, 8:])
     assert ade.max() < 1e-12 and fde.max() < 1e-12
     # it uses the LAST velocity only: a turn before the last step is ignored
     bent = tr.clone()
@@ -92,7 +137,7 @@ def test_gp_velocity_learns_constant_velocity_and_data_helpers():
     fc.load_gp_data(gp, x, y)
     tr = p0[:20, None] + torch.arange(20, dtype=F64)[None, :, None] * v[:20, None] * 0.4
     pred = fc.gp_velocity_rollout(gp, tr[:, :8], 12, 0.4)
-    ade, _ = fc.ade_fde(pred, tr[:, 8:])
+    ade, _ = ade_fde(pred, tr[:, 8:])
     assert ade.max() < 1e-6
 
 
@@ -136,6 +181,18 @@ def _tiny_cfg(**task_over):
     return cfg
 
 
+def _settings(**task_over) -> "ef.ForecastSettings":
+    """The study's typed settings of the tiny run's config (what the composition root hands the study)."""
+    return OmegaConf.to_object(_tiny_cfg(**task_over).task)
+
+
+def _run(cfg):
+    """The study of ``cfg``, built by the composition root, run (as ``dslearn-run`` does)."""
+    from dslearn.api import build_study
+
+    return build_study(cfg).run()
+
+
 #: the benchmark scenes' labels, from their conf/dataset/*.yaml
 LABELS5 = {s: packaged_dataset(s).label for s in rep.BENCHMARK}
 
@@ -166,7 +223,7 @@ def _cv_by_hand(scene: str, n_windows: int):
 @pytest.mark.skipif(not data_available(), reason="ETH/UCY data root not found")
 def test_tiny_end_to_end_run_report_and_learning_curves(tmp_path):
     curves_file = tmp_path / "run" / "learning_curves.csv"
-    df = ef.run(_tiny_cfg(curves_file=str(curves_file)))
+    df = _run(_tiny_cfg(curves_file=str(curves_file)))
     assert {"model", "consensus", "node", "scene", "metric", "value", "episode"} <= set(df.columns)
     assert set(df.scene) == {"zara1", "hotel"} and set(df.consensus) == {"-"} and set(df.node) == {"avg"}
     main = df[df.metric.isin(["ade", "fde"])]
@@ -207,8 +264,8 @@ def test_tiny_end_to_end_run_report_and_learning_curves(tmp_path):
     # the CSV holds exactly the curves the run returns in attrs
     pd.testing.assert_frame_equal(df.attrs["learning_curves"].reset_index(drop=True), lc, check_dtype=False)
     # where the file goes: null = nowhere, relative = the Hydra run dir (none outside Hydra), absolute as is
-    assert ef._curves_path(None) is None and ef._curves_path("learning_curves.csv") is None
-    assert ef._curves_path(str(curves_file)) == curves_file
+    assert curves_path(None) is None and curves_path("learning_curves.csv") is None
+    assert curves_path(str(curves_file)) == curves_file
 
 
 def test_convergence_table_by_hand():
@@ -248,7 +305,7 @@ def test_config_errors(monkeypatch):
         with pytest.raises(ConfigCompositionException, match=key.replace(".", r"\.")):
             _compose(**over)
     # the fixed schedule (the paper's) is accepted without early-stopping keys being used
-    fixed = ef.effective_task(_tiny_cfg(**{"lstm.schedule": "fixed", "lstm.epochs": 50, "lstm.batch_size": 8}).task)
+    fixed = ef.effective_settings(_settings(**{"lstm.schedule": "fixed", "lstm.epochs": 50, "lstm.batch_size": 8}))
     assert fixed.lstm.schedule == "fixed"
     cfg = _tiny_cfg()
     cfg.device = "tpu"
@@ -262,17 +319,24 @@ def test_config_errors(monkeypatch):
 
 
 def test_folds_are_config_and_leave_one_out():
-    cfg = _tiny_cfg(scenes=["eth", "hotel", "univ", "zara1", "zara2"])
-    t = cfg.task
-    assert list(t.folds.test) == ["eth", "hotel", "univ", "zara1", "zara2"] == list(_compose().task.scenes)
+    t = _settings(scenes=["eth", "hotel", "univ", "zara1", "zara2"])
+    assert t.folds.test == ["eth", "hotel", "univ", "zara1", "zara2"] == list(_compose().task.scenes)
     assert ef.fold_train_scenes(t, "zara1") == ("eth", "hotel", "zara2", "univ", "zara3", "uni_examples")
     assert ef.fold_train_scenes(t, "univ") == ("eth", "hotel", "zara1", "zara2", "zara3", "uni_examples")
     # an explicit training list replaces the fold's for every test scene
-    t2 = _tiny_cfg(train_scenes=["zara3"]).task
+    t2 = _settings(train_scenes=["zara3"])
     assert ef.fold_train_scenes(t2, "zara1") == ef.fold_train_scenes(t2, "hotel") == ("zara3",)
     # quick mode: the documented caps, nothing else changed
-    q = ef.effective_task(_tiny_cfg(quick=True, **{"lstm.epochs": 9, "train_stride": 3, "max_test_windows": None}).task)
+    s = _settings(quick=True, **{"lstm.epochs": 9, "train_stride": 3, "max_test_windows": None})
+    q = ef.effective_settings(s)
     assert (q.lstm.epochs, q.train_stride, q.max_test_windows, q.gp.points, q.gp.fit_points, q.gp.fit_iters) == (2, 10, 40, 200, 60, 3)
+    assert dataclasses.replace(q, lstm=s.lstm, gp=s.gp, train_stride=3, max_test_windows=None) == s  # nothing else
+    assert (s.lstm.epochs, s.train_stride, s.max_test_windows) == (9, 3, None)  # the settings are not changed
+    big = ef.effective_settings(_settings(quick=True, **{"gp.points": 5000, "gp.fit_points": 900, "gp.fit_iters": 50,
+                                                          "train_stride": 12, "max_test_windows": 7}))
+    assert (big.gp.points, big.gp.fit_points, big.gp.fit_iters, big.train_stride, big.max_test_windows) == \
+        (300, 100, 5, 12, 7)
+    assert ef.effective_settings(t2) is t2  # not quick: as given
 
 
 def _readme_published():

@@ -21,7 +21,8 @@ from dslearn.learning.lstm import lstm_windows
 from dslearn.models.gp_backends.exact import OnlineGP
 from dslearn.models.gp_backends.means import ConstantVelocityMean
 from dslearn.schemas import validate_task
-from dslearn.sim.real import Data, arena_network, perimeter_positions, scene_extent
+from dslearn import api
+from dslearn.sim.real import ArenaSettings, Data, EpisodeRecipe, arena_network, perimeter_positions, scene_extent
 from dslearn.sim.scenario import measure
 from dslearn.studies import ethucy_tracking as et
 from dslearn.types import StepContext
@@ -228,7 +229,7 @@ def tiny_cfg(*groups, **task):
 @pytest.mark.skipif(not data_available(), reason="ETH/UCY data root missing")
 def test_tables_end_to_end_on_a_real_scene(tmp_path):
     cfg = tiny_cfg(scenes=["zara1"])
-    df = et.run(cfg)
+    df = api.build_study(cfg).run()
     for col in ("model", "consensus", "node", "episode", "metric", "value", "scene", "train_episodes", "data"):
         assert col in df.columns
     sens = df[df["node_kind"] == "sensor"]
@@ -278,14 +279,14 @@ def test_learned_filters_stay_on_the_track_of_the_worst_eth_episodes():
     from dslearn.metrics import tracking_metrics
     from dslearn.models import ConstantVelocity
 
-    f64, cpu = torch.float64, torch.device("cpu")
     runs = {}
     for group in ("gp_increment", "gp"):
         cfg = tiny_cfg(f"model={group}", scenes=["eth"], train_episodes=32, test_episodes=25)
         assert cfg.task.gp_inputs == "belief"  # the study's default
+        study = api.build_study(cfg)
         torch.manual_seed(0)
-        data = et.real_data(cfg, "eth", 0, 32, f64, cpu)
-        fusion = et._fusion(cfg, data.network)
+        data = study.real_data("eth", 0, 32)
+        fusion = study.fusion(data.network)
         test = data.test.select(ETH_WORST)
 
         def err(alg):
@@ -293,11 +294,11 @@ def test_learned_filters_stay_on_the_track_of_the_worst_eth_episodes():
             assert torch.isfinite(res.mean).all()
             return tracking_metrics(res, test.states)["track_err"].mean(0)  # (B,): sensor average
 
-        lin = err(et.learner(cfg, ConstantVelocity(2, 0.1), data, fusion))
-        gps = {label: spec for name, label, spec in et.model_entries(cfg) if name in ("gp", "gp_cv")}
-        for label, spec in gps.items() if group == "gp_increment" else [(group, gps[group])]:
-            prior = err(et.learner(cfg, et.build_model(spec, data, f64, cpu), data, fusion))
-            alg = et.learner(cfg, et.build_model(spec, data, f64, cpu), data, fusion)
+        lin = err(study.learner(ConstantVelocity(2, 0.1), data, fusion))
+        gps = {e.label: e.make for e in study.ethucy_tracking_models if e.entry in ("gp", "gp_cv")}
+        for label, make in gps.items() if group == "gp_increment" else [(group, gps[group])]:
+            prior = err(study.learner(make(data.scenario, data.network), data, fusion))
+            alg = study.learner(make(data.scenario, data.network), data, fusion)
             et.train_online(alg, data, 32)
             assert alg.model.gp.n == 32 * 11 and alg.model.inputs == "belief"
             runs[label] = (err(alg), prior, lin)
@@ -311,7 +312,7 @@ def test_learned_filters_stay_on_the_track_of_the_worst_eth_episodes():
 def test_data_size_end_to_end_on_synthetic(tmp_path):
     cfg = tiny_cfg(protocol="data_size", scenes=[], synthetic=True, data_sizes=[2, 4], seeds=2, plot_episodes=0,
                    models=["gp", "gp_cv", "lstm"])
-    df = et.run(cfg)
+    df = api.build_study(cfg).run()
     sens = df[(df["node_kind"] == "sensor") & (df["metric"] == "pred_err")]
     assert set(sens["model"]) == {"gp_increment", "gp_increment_cv", "lstm"}
     assert set(sens["train_episodes"]) == {2, 4} and set(sens["seed"]) == {0, 1}
@@ -413,9 +414,9 @@ def test_cm_fused_ignores_uninformed_nodes():
     states = torch.cat([a1, a2], -1).unsqueeze(0)
     ep = measure(states, net, torch.Generator().manual_seed(0))
     assert ep.visible[0, 0, 0].all() and not ep.visible[1:, 0, 0].any()
-    cfg = tiny_cfg()
+    study = api.build_study(tiny_cfg())
     data = Data("toy", "real", ep, ep, net, StepContext(0.4), ext, 2, {})
-    fused = et.cm_fused(cfg, data, ep)
+    fused = study.cm_fused(data, ep)
     err0 = (fused[0, 0].unflatten(-1, (2, 4))[:, :2] - states[0, 0].unflatten(-1, (2, 4))[:, :2]).norm(dim=-1)
     assert (err0 < 0.7).all()  # a plain node average would sit ~2 m off (3 of 4 nodes at the prior's mean)
 
@@ -434,7 +435,7 @@ def test_lstm_early_stopping_holds_out_whole_episodes():
     assert not va_set & {tuple(w.flatten().tolist()) for w in tr}
     cfg = tiny_cfg(protocol="data_size", scenes=[], synthetic=True, data_sizes=[4], seeds=1, plot_episodes=0,
                    models=["gp", "gp_cv", "lstm"], model_keys={"lstm": {"schedule": "early_stopping", "epochs": 3, "patience": 1}})
-    df = et.run(cfg)
+    df = api.build_study(cfg).run()
     assert set(df[df["metric"] == "pred_err"]["model"]) == {"gp_increment", "gp_increment_cv", "lstm"}
 
 
@@ -449,12 +450,12 @@ def _rows(df, model, metric="track_err"):
 
 @pytest.fixture(scope="module")
 def zara1():
-    """A tiny zara1 source (4 training, 3 test episodes) and the small run's config."""
+    """A tiny zara1 source (4 training, 3 test episodes) and the small run's study."""
     if not data_available():
         pytest.skip("ETH/UCY data root missing")
-    cfg = tiny_cfg(scenes=["zara1"], models=["lin", "sfm", "lstm"])
+    study = api.build_study(tiny_cfg(scenes=["zara1"], models=["lin", "sfm", "lstm"]))
     torch.manual_seed(0)
-    return cfg, et.real_data(cfg, "zara1", 0, 4, torch.float64, torch.device("cpu"))
+    return study, study.real_data("zara1", 0, 4)
 
 
 def test_lin_sfm_lstm_rows_equal_the_recipes_built_by_hand(zara1):
@@ -467,13 +468,13 @@ def test_lin_sfm_lstm_rows_equal_the_recipes_built_by_hand(zara1):
     from dslearn.models import ConstantVelocity, LinearPositionObservation
     from dslearn.learning.online import OnlineLearner
 
-    cfg, data = zara1
-    df = et.protocol_tables(cfg, data, 0, torch.float64, torch.device("cpu"))
-    fusion = et._fusion(cfg, data.network)
+    study, data = zara1
+    df = study.protocol_tables(data, 0)
+    fusion = study.fusion(data.network)
 
     def by_hand(model, metric):
         alg = OnlineLearner(data.network, model, LinearPositionObservation(data.network.meas_std), fusion, data.ctx,
-                            init=lambda ep: et._init(cfg, data, ep, fusion), learn_gate_std=2.0)
+                            init=lambda ep: study.initial_belief(data, ep, fusion), learn_gate_std=2.0)
         if metric == "pred_err":
             err = prediction_error(model, data.test.states, data.network.num_nodes, data.ctx, per_node=False)
         else:
@@ -484,7 +485,7 @@ def test_lin_sfm_lstm_rows_equal_the_recipes_built_by_hand(zara1):
     c = SimpleNamespace(desired_steps=1, grid=SimpleNamespace(tau=[0.5, 2.0], alpha=[0.0, 1.0], beta=[1.0]),
                         refine_iters=3, refine_lr=0.05, noise_std=0.1)
     sfm, params, loss = sfm_fit.fit_episode_social_force(data.train.states.cpu(), data.test.states, data.ctx.dt, c)
-    fused = et.cm_fused(cfg, data, data.train)
+    fused = study.cm_fused(data, data.train)
     kw = {"embed": 64, "hidden": 64, "obs_len": 2, "pred_len": 10, "pooling": "none", "grid": 4, "neighbourhood": 2.0,
           "schedule": "fixed", "epochs": 2, "batch_size": 8, "lr": 1e-3}
     lstm, _ = train_lstm_model(kw, 2, data.ctx.dt, lstm_windows(fused, 2, 10), 0, torch.float64, torch.device("cpu"))
@@ -504,16 +505,15 @@ def test_observation_gp_is_used(zara1):
     from the training episodes, so LIN's tracking rows move; with the linear sensors LIN learns nothing."""
     from dslearn.models.observation import GPObservation, LinearPositionObservation
 
-    cfg, data = zara1
-    lin_cfg = tiny_cfg(scenes=["zara1"], models=["lin"])
-    gp_cfg = tiny_cfg("observation=gp", scenes=["zara1"], models=["lin"])
-    f64, cpu = torch.float64, torch.device("cpu")
-    fusion = et._fusion(cfg, data.network)
-    obs = et.learner(gp_cfg, None, data, fusion).obs
+    study, data = zara1
+    lin = api.build_study(tiny_cfg(scenes=["zara1"], models=["lin"]))
+    gp = api.build_study(tiny_cfg("observation=gp", scenes=["zara1"], models=["lin"]))
+    fusion = study.fusion(data.network)
+    obs = gp.learner(None, data, fusion).obs
     assert type(obs) is GPObservation and obs.gp.num_nodes == data.network.num_nodes
-    assert type(et.learner(lin_cfg, None, data, fusion).obs) is LinearPositionObservation
-    a = et.protocol_tables(lin_cfg, data, 0, f64, cpu)
-    b = et.protocol_tables(gp_cfg, data, 0, f64, cpu)
+    assert type(lin.learner(None, data, fusion).obs) is LinearPositionObservation
+    a = lin.protocol_tables(data, 0)
+    b = gp.protocol_tables(data, 0)
     ta, tb = _rows(a, "lin"), _rows(b, "lin")
     assert len(ta) == len(tb) == 12 and np.isfinite(tb).all()
     assert np.abs(ta - tb).max() > 1e-3
@@ -523,9 +523,113 @@ def test_observation_gp_is_used(zara1):
 def test_filter_ukf_is_used(zara1):
     """filter=ukf: the fitted social force's tracking rows move (sigma points through a nonlinear model); LIN's
     stay equal to machine precision (for a linear model the unscented prediction is the Kalman prediction)."""
-    cfg, data = zara1
-    f64, cpu = torch.float64, torch.device("cpu")
-    a = et.protocol_tables(tiny_cfg(scenes=["zara1"], models=["lin", "sfm"]), data, 0, f64, cpu)
-    b = et.protocol_tables(tiny_cfg("filter=ukf", scenes=["zara1"], models=["lin", "sfm"]), data, 0, f64, cpu)
+    _, data = zara1
+    a = api.build_study(tiny_cfg(scenes=["zara1"], models=["lin", "sfm"])).protocol_tables(data, 0)
+    b = api.build_study(tiny_cfg("filter=ukf", scenes=["zara1"], models=["lin", "sfm"])).protocol_tables(data, 0)
     np.testing.assert_allclose(_rows(a, "lin"), _rows(b, "lin"), rtol=1e-9, atol=1e-12)
     assert np.abs(_rows(a, "sfm") - _rows(b, "sfm")).max() > 1e-6
+
+
+# ---------------------------------------------------------------------------------------------
+# the study is a component: typed settings and the task's slots (the composition root's config logic)
+# ---------------------------------------------------------------------------------------------
+def test_study_module_reads_no_configuration():
+    """The study takes typed settings and built parts: it neither names the config libraries nor imports the
+    composition root or the validation layer (the config logic is the task's slots, dslearn/schemas)."""
+    import ast
+    import inspect
+    import re
+
+    src = inspect.getsource(et)
+    assert not re.search("omegaconf|hydra|DictConfig|to_plain", src, re.IGNORECASE)
+    mods = {n.module for n in ast.walk(ast.parse(src)) if isinstance(n, ast.ImportFrom)}
+    mods |= {a.name for n in ast.walk(ast.parse(src)) if isinstance(n, ast.Import) for a in n.names}
+    assert not {m for m in mods if m and m.startswith(("dslearn.compose", "dslearn.schemas"))}, mods
+
+
+def test_settings_are_typed_and_split_into_recipe_and_arena():
+    """The composed task arrives as the study's settings dataclass; each of its values reaches the episode
+    recipe and the arena network under its own name (distinct values: a swapped pair fails)."""
+    cfg = tiny_cfg(scenes=["zara1"], models=["lin"], max_dist=2.5, min_speed=0.25, stride=3, steps=9, dt=0.5, criterion="closest",
+                   split="random", test_fraction=0.3, network={"num_sensors": 5, "k_nearest": 3, "sensing_range": 6.5,
+                                                                "meas_std": 0.15, "margin": 0.1})
+    study = api.build_study(cfg)
+    s = study.settings
+    assert isinstance(s, et.EthucyTrackingSettings) and isinstance(s.network, ArenaSettings)
+    assert isinstance(s.cm_fusion, et.CmFusionSettings) and s.cm_fusion.noise_std == 0.1
+    want = dict(agents=2, steps=9, dt=0.5, max_dist=2.5, stride=3, criterion="closest", min_speed=0.25, split="random",
+                test_fraction=0.3, test_episodes=3)
+    assert s.episode_recipe() == EpisodeRecipe(**want)
+    ext = (0.0, 12.0, 0.0, 7.0)
+    net, ref = s.network.network(ext), arena_network(ext, 5, k_nearest=3, sensing_range=6.5, meas_std=0.15, margin=0.1)
+    assert torch.equal(net.positions, ref.positions) and torch.equal(net.adjacency, ref.adjacency)
+    assert (net.meas_std, net.sensing_range) == (0.15, 6.5)
+    assert set(study.ethucy_tracking_datasets) >= {"zara1", "eth"}
+    assert study.ethucy_tracking_datasets["zara1"].label == "ZARA1"
+
+
+def test_observation_noise_follows_the_study_network():
+    """The sensor model of a source's network has that network's noise (task.network.meas_std), not the
+    root network's that the observation option names, unless the option's noise is set."""
+    from dslearn.models import LinearPositionObservation
+
+    ext = (0.0, 10.0, 0.0, 6.0)
+    study = api.build_study(tiny_cfg("network.meas_std=0.5", network={"meas_std": 0.35}))
+    net = study.settings.network.network(ext)
+    obs = study.ethucy_tracking_observation(net)
+    assert type(obs) is LinearPositionObservation and obs.noise_std == 0.35
+    assert study.ethucy_tracking_observation(arena_network(ext, 4, meas_std=0.27)).noise_std == 0.27
+    fixed = api.build_study(tiny_cfg("observation.noise_std=0.45", network={"meas_std": 0.35}))
+    assert fixed.ethucy_tracking_observation(net).noise_std == 0.45
+
+
+def test_model_entries_cm_fusion_and_synthetic_slots():
+    """The model entries carry their labels and make a fresh model per call; the CM fusion of the fused
+    tracks takes the root consensus group's weights and iterations; the root scenario and network are built
+    for the synthetic source only."""
+    from dslearn.fusion.strategies import ConsensusOnMeasurements
+    from dslearn.fusion.weights import consensus_weights
+    from dslearn.models import ConstantVelocity
+    from dslearn.sim.real import RealScenario
+
+    study = api.build_study(tiny_cfg("consensus.iterations=2", "consensus.weights=metropolis",
+                                     models=["gp", "gp_cv", "lin", "sfm"]))
+    entries = study.ethucy_tracking_models
+    assert [(e.entry, e.label) for e in entries] == [("gp", "gp_increment"), ("gp_cv", "gp_increment_cv"),
+                                                      ("lin", "lin"), ("sfm", "sfm")]
+    net = arena_network((0.0, 10.0, 0.0, 6.0), 4)
+    scenario = RealScenario(2, 0.4, 11, (0.0, 10.0, 0.0, 6.0))
+    a, b = entries[0].make(scenario, net), entries[0].make(scenario, net)
+    assert a is not b and a.gp is not b.gp and a.inputs == "belief" and a.state_dim == 8
+    lin = entries[2].make(scenario, net)
+    assert type(lin) is ConstantVelocity and lin.noise_std == 0.1
+    assert entries[1].make(scenario, net, device=torch.device("meta")).gp.mean_type == "constant_velocity"
+    cm = study.ethucy_tracking_cm_fusion(net)
+    assert type(cm) is ConsensusOnMeasurements and cm.iterations == 2 and cm.weights_rule == "metropolis"
+    torch.testing.assert_close(cm.weights, consensus_weights(net.adjacency, "metropolis"))
+    assert type(study.fusion(net)).__name__ == "HybridConsensus" and study.fusion(net).iterations == 2
+    assert study.ethucy_tracking_synthetic is None  # tables: the root scenario and network are not built
+    syn = api.build_study(tiny_cfg(protocol="data_size", scenes=[], synthetic=True, data_sizes=[2], seeds=1,
+                                   plot_episodes=0, models=["lin"]))
+    world = syn.ethucy_tracking_synthetic
+    assert isinstance(world, et.SyntheticWorld) and world.network.num_nodes > 0 and world.scenario.num_agents == 2
+    assert syn.sources() == [("synthetic", "synthetic")]
+
+
+def test_position_and_scalar_rows():
+    """The stored trajectories' rows: x and y of each agent at each step of the first n episodes, keys first."""
+    from dslearn.metrics.prediction import position_rows, scalar_row
+
+    traj = torch.arange(3 * 4 * 8, dtype=torch.float64).reshape(3, 4, 8)  # (B, K+1, [p, v] x 2 agents)
+    df = position_rows(traj, "sensor1", 2, data="real", scene="s")
+    assert list(df.columns) == ["data", "scene", "node", "node_kind", "episode", "step", "agent", "metric", "value"]
+    assert len(df) == 2 * 4 * 2 * 2 and set(df.episode) == {0, 1} and (df.node == "sensor1").all()
+    got = df.set_index(["metric", "episode", "step", "agent"])["value"]
+    for e in range(2):
+        for k in range(4):
+            for a in range(2):
+                assert got[("pred_x", e, k, a)] == traj[e, k, 4 * a] and got[("pred_y", e, k, a)] == traj[e, k, 4 * a + 1]
+    assert position_rows(None, "sensor1", 0, data="real").empty
+    row = scalar_row("sfm_tau", 0.7, data="real", seed=3)
+    assert row.to_dict("records") == [{"node": "avg", "node_kind": "param", "episode": 0, "metric": "sfm_tau",
+                                       "value": 0.7, "data": "real", "seed": 3}]

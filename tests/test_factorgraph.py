@@ -23,6 +23,7 @@ from dslearn.learning.factor_graph.messages import (
 from dslearn.sim.squared_range import SquaredRange, polynomial_trajectory, run_noise, run_seed
 from dslearn.learning.factor_graph.engine import TrackerSettings, simulate
 from dslearn.filters.ekf_fg import TrackState, ekf_fg_step, observation_variance
+from dslearn.metrics.identification import crlb_at_truth, identification_rows, rmse, squared_error
 
 DT = torch.float64
 SENSORS = torch.tensor([[-30.0, 50.0], [10.0, 5.0], [60.0, 20.0]], dtype=DT)
@@ -295,8 +296,8 @@ def test_gauss_newton_fg_reaches_crlb_from_zero_guess_and_equals_centralised_ml(
     h, truth, noise = _scenario(range(4), 50, 60)
     s = TrackerSettings(graph="joint", relinearize=True, taylor_point="guess", obs_var="convergence")
     o = simulate(h, truth, noise, torch.tensor([5.0], dtype=DT), torch.tensor([10]), s)
-    rmse_t = o.fg_iter_sqerr[:, 0].mean((-1, -2)).sqrt()
-    bound = float(o.crlb_truth[0].mean().sqrt())
+    rmse_t = squared_error(o.fg_iter_means, truth)[:, 0].mean((-1, -2)).sqrt()
+    bound = float(crlb_at_truth(h, truth, torch.tensor([5.0], dtype=DT), 60)[0].mean().sqrt())
     assert float(rmse_t[10]) <= 2 * bound
     # ML attains the bound: 4 x 50 x 2 errors give a relative spread of the RMSE of about 3.5 %
     # (measured here: 0.93); the band is ~7 spreads wide on each side
@@ -331,8 +332,8 @@ def test_relinearised_sequential_converges_on_paper_scenario():
     seq = simulate(h, truth, noise, *one, TrackerSettings(relinearize=True, schedule="sequential",
                                                            obs_var="convergence"))
     paper = simulate(h, truth, noise, *one, TrackerSettings(obs_var="convergence"))
-    r_seq = seq.fg_iter_sqerr[:, 0].mean((-1, -2)).sqrt()
-    r_paper = paper.fg_iter_sqerr[:, 0].mean((-1, -2)).sqrt()
+    r_seq = squared_error(seq.fg_iter_means, truth)[:, 0].mean((-1, -2)).sqrt()
+    r_paper = squared_error(paper.fg_iter_means, truth)[:, 0].mean((-1, -2)).sqrt()
     assert bool((r_seq[1:] < r_seq[:-1]).all()), r_seq
     assert float(r_seq[10]) < 0.2 * float(r_paper[10]), (r_seq[10], r_paper[10])
 
@@ -350,24 +351,94 @@ def test_monte_carlo_run_does_not_depend_on_its_batch():
     for s in (TrackerSettings(obs_var="convergence"), TrackerSettings(obs_var="crlb", gate=10.83),
               TrackerSettings(graph="joint", relinearize=True, taylor_point="guess", obs_var="convergence"),
               TrackerSettings(relinearize=True, schedule="sequential", obs_var="convergence")):
-        o5 = simulate(h, polynomial_trajectory(COEFFS, K, 0.5, noise=d5), n5, sig, its, s)
-        o1 = simulate(h, polynomial_trajectory(COEFFS, K, 0.5, noise=d1), n1, sig, its, s)
+        t5, t1 = polynomial_trajectory(COEFFS, K, 0.5, noise=d5), polynomial_trajectory(COEFFS, K, 0.5, noise=d1)
+        o5, o1 = simulate(h, t5, n5, sig, its, s), simulate(h, t1, n1, sig, its, s)
         for name, v in o1.estimates.items():
             torch.testing.assert_close(o5.estimates[name][:, r:r + 1], v, rtol=0, atol=1e-9)
-        for f in ("fg_iter_sqerr", "crlb_truth", "obs_var"):
-            torch.testing.assert_close(getattr(o5, f)[..., r:r + 1, :], getattr(o1, f), rtol=0, atol=1e-9)
+        torch.testing.assert_close(o5.fg_iter_means[..., r:r + 1, :, :], o1.fg_iter_means, rtol=0, atol=1e-9)
+        torch.testing.assert_close(o5.obs_var[..., r:r + 1, :], o1.obs_var, rtol=0, atol=1e-9)
+        for f5, f1 in ((squared_error(o5.fg_iter_means, t5), squared_error(o1.fg_iter_means, t1)),
+                       (crlb_at_truth(h, t5, sig, L), crlb_at_truth(h, t1, sig, L))):
+            torch.testing.assert_close(f5[..., r:r + 1, :], f1, rtol=0, atol=1e-9)
         assert torch.equal(o5.iters_to_converge[:, r:r + 1], o1.iters_to_converge)
+
+
+# ---------------------------------------------------------------------------- metrics (errors against the truth)
+def test_identification_metrics_closed_forms():
+    """squared_error = mean over the parameters; crlb_at_truth = Eq. 27 written out for the squared range
+    (J_n = -2 (s_n - x), F = L / sigma^2 J^T J, tr F^-1 / M) at each timing's own true state, per
+    configuration's sigma_y; rmse over / per timing; rows: one per episode (x timing k = 1..K)."""
+    h = SquaredRange(SENSORS)
+    truth = torch.tensor([[[1.0, 2.0], [3.0, -1.0], [0.5, 0.5]],
+                          [[-2.0, 4.0], [6.0, 1.0], [2.0, 9.0]]], dtype=DT)          # (B=2, K=3, M=2)
+    est = (truth + torch.tensor([3.0, 4.0], dtype=DT)).expand(2, 2, 3, 2).clone()    # (C=2, B, K, M)
+    est[1, 1, 2] += torch.tensor([1.0, -1.0], dtype=DT)                               # errors (4, 3)
+    sq = squared_error(est, truth)
+    want = torch.full((2, 2, 3), 12.5, dtype=DT)
+    want[1, 1, 2] = 12.5  # 4^2 + 3^2 over 2: the same
+    torch.testing.assert_close(sq, want, rtol=0, atol=1e-12)
+    est[0, 0, 1] = truth[0, 1]
+    assert squared_error(est, truth)[0, 0, 1] == 0.0 and squared_error(est, truth)[0, 1, 1] == 12.5
+    sig, L = torch.tensor([2.0, 0.5], dtype=DT), 7
+    got = crlb_at_truth(h, truth, sig, L)
+    assert got.shape == (2, 2, 3)
+    S = SENSORS.numpy()
+    for c in range(2):
+        for b in range(2):
+            for k in range(3):
+                J = -2.0 * (S - truth[b, k].numpy())
+                F = L / float(sig[c]) ** 2 * J.T @ J
+                assert float(got[c, b, k]) == pytest.approx(np.trace(np.linalg.inv(F)) / 2, rel=1e-12)
+    v = torch.tensor([[1.0, 4.0, 16.0], [9.0, 9.0, 0.0]], dtype=DT)
+    np.testing.assert_allclose(rmse(v), [math.sqrt(7.0), math.sqrt(6.0)], rtol=1e-15)
+    np.testing.assert_array_equal(rmse(v, over_timings=False), [[1.0, 2.0, 4.0], [3.0, 3.0, 0.0]])
+    df = identification_rows(np.arange(6.0).reshape(2, 3), "rmse", figure="fig4", sigma_y=5.0)
+    assert df["episode"].tolist() == [0, 0, 0, 1, 1, 1] and df["timing"].tolist() == [1, 2, 3, 1, 2, 3]
+    assert df["value"].tolist() == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0] and set(df["metric"]) == {"rmse"}
+    assert set(df["figure"]) == {"fig4"} and set(df["sigma_y"]) == {5.0}
+    df = identification_rows(np.array([2.0, 3.0]), "rmse", timing=-1)
+    assert df["episode"].tolist() == [0, 1] and df["timing"].tolist() == [-1, -1] and df["value"].tolist() == [2.0, 3.0]
+
+
+def test_study_rows_are_the_engine_estimates_against_the_truth():
+    """The study's rmse rows, recomputed here from the engine on the same random streams: fig4 per
+    timing (EKF-FG, centralised EKF), fig2 per FG iteration, the CRLB rows from Eq. 27 at the truth."""
+    from dslearn import api
+
+    seed, B, K, L = 2, 2, 6, 10
+    cfg = _cfg(seed=seed, ablations={}, mc_runs=B, **{"figures.fig2_iterations": [10], "figures.fig5_sigma_y": [5.0]})
+    study = api.build_study(cfg)
+    df = study.run()
+    drive, noise = run_noise(seed, range(B), K, 2, 3, L)
+    h, truth = SquaredRange(SENSORS), polynomial_trajectory(COEFFS, K, 0.5, noise=drive)
+    o = simulate(h, truth, noise, torch.tensor([5.0], dtype=DT), torch.tensor([10]), study.tracker_settings())
+    rm = df[(df["metric"] == "rmse") & (df["variant"] == "default") & (df["sigma_y"] == 5.0)]
+
+    def got(figure, model, **sel):
+        sub = rm[(rm["figure"] == figure) & (rm["model"] == model)]
+        for k_, v_ in sel.items():
+            sub = sub[sub[k_] == v_]
+        return sub.sort_values(["episode", "timing"])["value"].to_numpy()
+
+    for model in ("ekf_fg", "centralized_ekf", "centralized_gn"):
+        want = (o.estimates[model][0] - truth).square().mean(-1).sqrt()              # (B, K)
+        np.testing.assert_allclose(got("fig4", model), want.reshape(-1).numpy(), rtol=1e-9)
+    for t in (0, 3, 10):
+        ident = o.fg_iter_means[t, 0]                                                   # (B, K, M)
+        want = (ident - truth).square().mean(-1).mean(-1).sqrt()
+        np.testing.assert_allclose(got("fig2", "fg_identification", iteration=t), want.numpy(), rtol=1e-9)
+    bound = torch.stack([crlb(h, truth[:, k], 5.0, L) for k in range(K)], -1)         # (B, K)
+    np.testing.assert_allclose(got("fig4", "crlb"), bound.sqrt().reshape(-1).numpy(), rtol=1e-12)
+    np.testing.assert_allclose(got("fig2", "crlb"), bound.mean(-1).sqrt().numpy(), rtol=1e-12)
 
 
 def test_study_episode_independent_of_mc_runs():
     """At the study level: episode 0 of mc_runs=1 equals episode 0 of mc_runs=4 (to 1e-9)."""
-    from dslearn.studies import jiang_fg
-
     ab = {"paper": {"obs_var": "crlb", "gate": None}}
     key = ["figure", "variant", "model", "iteration", "timing", "sigma_y", "param", "metric"]
 
     def ep0(runs):
-        df = jiang_fg.run(_cfg(ablations=ab, mc_runs=runs))
+        df = _run(_cfg(ablations=ab, mc_runs=runs))
         df = df[(df["episode"] == 0) & (df["metric"] != "runtime_s")]
         return df.set_index(key)["value"].sort_index()
 
@@ -383,9 +454,7 @@ def test_study_centralised_ml_attains_the_crlb():
     so [0.85, 1.15] is a ~4.7 std band; a biased or inefficient estimator (or a wrong bound)
     falls outside it.
     """
-    from dslearn.studies import jiang_fg
-
-    df = jiang_fg.run(_cfg(ablations={}, mc_runs=40, **{"figures.fig2_iterations": [10],
+    df = _run(_cfg(ablations={}, mc_runs=40, **{"figures.fig2_iterations": [10],
                                                         "figures.fig5_sigma_y": [5.0]}))
     rm = df[(df["metric"] == "rmse") & (df["figure"] == "fig5")]
     pooled = rm.groupby("model")["value"].apply(lambda v: np.sqrt((v**2).mean()))
@@ -442,11 +511,16 @@ def _cfg(seed=0, ablations=None, check=True, **over):
     return cfg
 
 
-def test_study_run_and_report(tmp_path):
-    from dslearn.studies import jiang_fg
+def _run(cfg):
+    """The study of ``cfg`` as the composition root builds it (its slots filled), run."""
+    from dslearn import api
 
+    return api.build_study(cfg).run()
+
+
+def test_study_run_and_report(tmp_path):
     # the configured variants, with the two 100-iteration ones cut to 20 iterations (test time)
-    df = jiang_fg.run(_cfg(**{"ablations.converged_fixed_point.max_iter": 20,
+    df = _run(_cfg(**{"ablations.converged_fixed_point.max_iter": 20,
                               "ablations.warm_start_converged.max_iter": 20}))
     for col in ("metric", "value", "episode", "model", "consensus", "node", "iteration", "timing", "sigma_y",
                 "figure"):
@@ -468,7 +542,7 @@ def test_study_run_and_report(tmp_path):
     ekf = df[(df["metric"] == "rmse") & (df["model"] == "ekf_fg")]
     assert len(ekf) and np.isfinite(ekf["value"]).all() and float(ekf["value"].max()) < 1e3
     # reproducible from the seed
-    df2 = jiang_fg.run(_cfg(**{"ablations.converged_fixed_point.max_iter": 20,
+    df2 = _run(_cfg(**{"ablations.converged_fixed_point.max_iter": 20,
                                "ablations.warm_start_converged.max_iter": 20}))
     np.testing.assert_array_equal(df["value"].values[:-1], df2["value"].values[:-1])  # last row: runtime
     df["task"] = "jiang_fg"

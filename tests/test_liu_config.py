@@ -4,6 +4,7 @@ field, cross-field rules), the task's own keys that pick a cell (``task.tracker`
 options s1-s3 (every option composes, is checked and is what the study instantiates / reads)."""
 
 import contextlib
+import dataclasses
 import functools
 import io
 import os
@@ -16,6 +17,7 @@ from dslearn.schemas.core import CONF_DIR
 from dslearn.errors import ConfigError
 from dslearn.schemas import validate_task
 from dslearn.sim import manoeuvres
+from dslearn import api
 from dslearn.studies import liu_dgpt
 
 
@@ -27,7 +29,7 @@ def _compose(*overrides):
 def _plan(*overrides):
     cfg = _compose("experiment=liu_table1", *overrides)
     validate_task(cfg)
-    return liu_dgpt.plan(cfg)
+    return api.build_study(cfg).plan()
 
 
 def _cli(argv):
@@ -98,19 +100,19 @@ ALL_RULES = ["poe", "gpoe", "bcm", "rbcm", "grbcm"]
 @pytest.mark.parametrize("option", ["dgpt", "gp"])
 def test_every_tracker_option(option):
     p = _plan(f"task.tracker={option}")
-    assert p["centralised"] is (option == "gp")
-    assert p["aggregations"] == ([] if option == "gp" else ALL_RULES)
+    assert p.centralised is (option == "gp")
+    assert p.aggregations == ([] if option == "gp" else ALL_RULES)
     # without a tracker: the rules and, with task.centralised, the standard GP
-    assert (_plan()["aggregations"], _plan()["centralised"]) == (ALL_RULES, True)
-    assert (_plan("task.centralised=false")["aggregations"], _plan("task.centralised=false")["centralised"]) == \
+    assert (_plan().aggregations, _plan().centralised) == (ALL_RULES, True)
+    assert (_plan("task.centralised=false").aggregations, _plan("task.centralised=false").centralised) == \
         (ALL_RULES, False)
 
 
 @pytest.mark.parametrize("option", ["poe", "gpoe", "bcm", "rbcm", "grbcm"])
 def test_every_aggregation_option(option):
     p = _plan(f"task.aggregations=[{option}]")
-    assert p["aggregations"] == [option] and p["centralised"] is True
-    assert _plan(f"task.aggregations=[{option}]", "task.tracker=dgpt")["centralised"] is False
+    assert p.aggregations == [option] and p.centralised is True
+    assert _plan(f"task.aggregations=[{option}]", "task.tracker=dgpt").centralised is False
 
 
 @pytest.mark.parametrize("option", ["temporal", "spatiotemporal"])
@@ -118,14 +120,14 @@ def test_every_gp_input_option(option):
     for base in ("experiment=liu_table1", "experiment=liu_table2"):  # the command line beats the experiment's default
         cfg = _compose(base, f"task.gp_input={option}")
         validate_task(cfg)
-        assert liu_dgpt.plan(cfg)["gp_input"] == option
+        assert api.build_study(cfg).plan().gp_input == option
 
 
 @pytest.mark.parametrize("option", ["s1", "s2", "s3"])
 def test_every_scenario_option_instantiates_its_generator(option):
     p = _plan(f"scenario={option}")
-    assert p["scenarios"] == [option]
-    gen = p["generators"][option]
+    assert p.scenarios == [option]
+    gen = p.generators[option]
     assert isinstance(gen, functools.partial) and gen.func is manoeuvres.GENERATORS[option]
     # the instantiated partial is the generator with the task's parameters: same trajectory
     cfg = _compose("experiment=liu_table1")
@@ -140,17 +142,17 @@ def test_every_scenario_option_instantiates_its_generator(option):
 def test_scenario_parameters_apply_with_and_without_selection():
     for sel in ([], ["scenario=s1"]):
         p = _plan(*sel, "task.scenario_params.s1.turn_every=7")
-        assert p["generators"]["s1"].keywords["turn_every"] == 7
-    assert _plan()["scenarios"] == ["s1", "s2", "s3"]  # the root default (Yu's scenario) selects nothing
+        assert p.generators["s1"].keywords["turn_every"] == 7
+    assert _plan().scenarios == ["s1", "s2", "s3"]  # the root default (Yu's scenario) selects nothing
     # a scenario option's own node is its generator: a parameter there is not a key (fails at composition)
     code, lines = _cli(["experiment=liu_table1", "scenario=s1", "scenario.turn_every=7", "hydra.run.dir=/nonexistent/x"])
     assert code == 2 and len(lines) == 1 and "scenario.turn_every" in lines[0], lines
 
 
 def test_noise_levels_are_the_task_key():
-    assert _plan("task.noises=[2]")["noises"] == [2.0]
-    assert _plan("task.noises=[1,4]")["noises"] == [1.0, 4.0]
-    assert _plan()["noises"] == [1.0, 2.0, 4.0]
+    assert _plan("task.noises=[2]").noises == [2.0]
+    assert _plan("task.noises=[1,4]").noises == [1.0, 4.0]
+    assert _plan().noises == [1.0, 2.0, 4.0]
 
 
 # ------------------------------------------------------------------ the moved keys: same plan as before
@@ -189,7 +191,8 @@ FIXED = dict(batch_runs=50, num_sensors=200, num_steps=100, sensing_range=50.0, 
 
 def _assert_plan(cfg, cell):
     validate_task(cfg)
-    p = liu_dgpt.plan(cfg)
+    plan = api.build_study(cfg).plan()
+    p = {f.name: getattr(plan, f.name) for f in dataclasses.fields(plan)} | {"trace": dataclasses.asdict(plan.trace)}
     assert {k: p[k] for k in cell} == cell
     assert {k: p[k] for k in FIXED} == FIXED
     assert p["hyper"] == liu_dgpt.HyperConfig(**{k: v for k, v in cfg.task.hyper.items()})

@@ -216,6 +216,7 @@ def test_synthetic_studies_refuse_fused_training(make_cfg):
 def test_faults_study_fits_the_lstm_once_and_refuses_fused_training(make_cfg, monkeypatch):
     """``task.models=[lstm]`` in the faults study: fitted once (before the grid) on the true training tracks,
     copied into every cell, finite rows labelled lstm; ``train_on=fused`` refused before any episode is drawn."""
+    from dslearn import api
     from dslearn.studies import yu_faults
 
     over = ["experiment=yu_faults", "task.models=[lstm]", "task.fusions=[cm,hybrid]", "task.train_episodes=2",
@@ -224,7 +225,7 @@ def test_faults_study_fits_the_lstm_once_and_refuses_fused_training(make_cfg, mo
     fits = []
     real_fit = SocialLSTM.fit_offline
     monkeypatch.setattr(SocialLSTM, "fit_offline", lambda self, *a, **k: fits.append(a[0].shape) or real_fit(self, *a, **k))
-    df = yu_faults.run(make_cfg(*over))
+    df = api.build_study(make_cfg(*over)).run()
     assert fits == [(2, 13, 8)]  # once, for 2 settings x 2 fusions
     te = df[(df.metric == "track_err") & (df.node == "alive")]
     assert set(te.model) == {"lstm"} and len(te) == 4 and te.value.map(math.isfinite).all()
@@ -232,4 +233,4 @@ def test_faults_study_fits_the_lstm_once_and_refuses_fused_training(make_cfg, mo
     monkeypatch.setattr(SocialLSTM, "configure_offline", lambda self, prefix="model", **k: real_conf(self, prefix, **{**k, "train_on": "fused"}))
     monkeypatch.setattr(yu_faults, "episode_streams", lambda *a, **k: pytest.fail("drew episodes"))
     with pytest.raises(ConfigError, match="model.train_on=fused"):
-        yu_faults.run(make_cfg(*over))
+        api.build_study(make_cfg(*over)).run()

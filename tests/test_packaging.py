@@ -23,7 +23,7 @@ def test_pyproject_lists_every_package_and_the_configs():
     meta = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
     found = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "dslearn").rglob("__init__.py")}
     listed = set(meta["packages"])
-    assert listed == found | {"dslearn.conf"}, (found - listed, listed - found)
+    assert listed == found | {"dslearn.conf", "hydra_plugins.dslearn_matrix"}, (found - listed, listed - found)
     assert meta["package-dir"] == {"dslearn.conf": "conf"}
     patterns = meta["package-data"]["dslearn.conf"]
     # every config file is matched by a package-data pattern (top level or one group folder deep)

@@ -364,10 +364,15 @@ def _compose(overrides, check=True):
     return cfg
 
 
-def test_end_to_end_tiny_run(tmp_path):
-    from dslearn.studies import braga_tbn
+def _run(cfg):
+    """The study of a checked configuration, built by the composition root, run (as ``dslearn-run`` does)."""
+    from dslearn.api import build_study
 
-    df = braga_tbn.run(_tiny_cfg())
+    return build_study(cfg).run()
+
+
+def test_end_to_end_tiny_run(tmp_path):
+    df = _run(_tiny_cfg())
     for col in ("episode", "metric", "value", "model", "consensus", "node", "strategy", "time_s"):
         assert col in df.columns
     strategies = ["noncooperative", "centralised", "consensus_1", "consensus_5", "consensus_10"]
@@ -399,12 +404,10 @@ def test_end_to_end_tiny_run(tmp_path):
 
 def test_worker_processes_match_serial():
     """task.workers runs MC batches in separate processes; the results are identical to the serial run."""
-    from dslearn.studies import braga_tbn
-
     over = {"task.mc_runs": 2, "task.mc_batch": 1, "task.steps": 12, "task.num_particles": 10,
             "task.em.burn_in": 5, "task.strategies": "[noncooperative,consensus_1]", "task.steady_state_s": 0.3}
-    a = braga_tbn.run(_tiny_cfg(**over, **{"task.workers": 1}))
-    b = braga_tbn.run(_tiny_cfg(**over, **{"task.workers": 2}))
+    a = _run(_tiny_cfg(**over, **{"task.workers": 1}))
+    b = _run(_tiny_cfg(**over, **{"task.workers": 2}))
     keep = a.metric != "wall_time_s"
     assert a[keep].drop(columns="value").reset_index(drop=True).equals(b[keep].drop(columns="value").reset_index(drop=True))
     assert a[keep].value.tolist() == b[keep].value.tolist()
@@ -419,13 +422,11 @@ def _by_key(df):
 def test_runs_independent_of_batch_and_strategy_list():
     """A Monte Carlo run's result depends only on (seed, run index, strategy): run 1 alone (mc_batch=1), inside a
     batch of 3, and with a different strategy list give the same outputs to 1e-9 (per-run random streams)."""
-    from dslearn.studies import braga_tbn
-
     over = {"task.mc_runs": 3, "task.steps": 40, "task.num_particles": 24, "task.em.burn_in": 10,
             "task.steady_state_s": 0.5, "task.workers": 1, "task.strategies": "[noncooperative,centralised,consensus_5]"}
-    batch3 = _by_key(braga_tbn.run(_tiny_cfg(**over, **{"task.mc_batch": 3})))
-    alone = _by_key(braga_tbn.run(_tiny_cfg(**over, **{"task.mc_batch": 1})))
-    other = _by_key(braga_tbn.run(_tiny_cfg(**{**over, "task.mc_batch": 2, "task.strategies": "[consensus_5]"})))
+    batch3 = _by_key(_run(_tiny_cfg(**over, **{"task.mc_batch": 3})))
+    alone = _by_key(_run(_tiny_cfg(**over, **{"task.mc_batch": 1})))
+    other = _by_key(_run(_tiny_cfg(**{**over, "task.mc_batch": 2, "task.strategies": "[consensus_5]"})))
     assert batch3.index.equals(alone.index) and len(batch3) > 500
     assert set(batch3.index.get_level_values("metric")) >= {"pos_rms", "mu_rms", "pos_se_t", "mu_1", "lost_track"}
     assert (batch3 - alone).abs().max() < 1e-9
@@ -439,22 +440,24 @@ def test_runs_independent_of_batch_and_strategy_list():
 def test_trace_runs_match_study_and_diagnostics():
     """trace_runs on a subset of runs (in another order) reproduces the study's per-run results and records
     consistent diagnostics (ESS in [1, N], position spread >= 0, h_misfit = h(estimate) - h(truth))."""
-    from dslearn.studies import braga_tbn
     from dslearn.tools.tbn_trace import trace_runs
 
     over = {"task.mc_runs": 3, "task.mc_batch": 3, "task.steps": 30, "task.num_particles": 20, "task.em.burn_in": 10,
             "task.steady_state_s": 0.5, "task.workers": 1, "task.strategies": "[noncooperative,consensus_1]"}
     cfg = _tiny_cfg(**over)
-    study = _by_key(braga_tbn.run(cfg))
-    scn, res = trace_runs(cfg, [2, 0])
+    study = _by_key(_run(cfg))
+    scn, res, err = trace_runs(cfg, [2, 0])
     n_ss = 10  # 0.5 s at 50 ms
     for ri, ep in enumerate([2, 0]):
         for ci, sname in enumerate(["noncooperative", "consensus_1"]):
             want = study[(ep, sname, "pos_rms", -1.0)]
-            assert abs(res.pos_se[-n_ss:, ri, ci].mean().sqrt().item() - want) < 1e-9
+            assert abs(err.pos_se[-n_ss:, ri, ci].mean().sqrt().item() - want) < 1e-9
     dg = res.diagnostics
-    assert set(dg) == {"ess", "spread", "vel_se", "h_misfit", "p_mode_last", "resampled"}
-    assert all(v.shape == res.pos_se.shape for v in dg.values())
+    assert set(dg) == {"ess", "spread", "p_mode_last", "resampled"}  # the filter's own traces: no truth in them
+    assert all(v.shape == err.pos_se.shape for v in (*dg.values(), err.vel_se, err.h_misfit))
+    xt = scn.x[:, None, :, 1:].permute(3, 0, 1, 2, 4)  # (T, R, 1, S, 4): the truth, against the estimates
+    torch.testing.assert_close(err.h_misfit, scn.terrain(res.est) - scn.terrain(xt), rtol=0, atol=0)
+    torch.testing.assert_close(err.vel_se, (res.est[..., 2:] - xt[..., 2:]).pow(2).sum(-1), rtol=0, atol=0)
     assert (dg["ess"] >= 1 - 1e-9).all() and (dg["ess"] <= 20 + 1e-9).all() and (dg["spread"] >= 0).all()
     assert ((dg["p_mode_last"] >= 0) & (dg["p_mode_last"] <= 1 + 1e-12)).all()
     assert dg["resampled"].any() and res.counters["resample_events"].sum() == dg["resampled"].sum()
@@ -504,12 +507,10 @@ def test_regularised_resampling_kernel_covariance():
 
 
 def test_run_reproducible_and_bad_config():
-    from dslearn.studies import braga_tbn
-
     cfg = _tiny_cfg(**{"task.mc_runs": 1, "task.mc_batch": 1, "task.steps": 15, "task.num_particles": 10,
                        "task.em.burn_in": 5, "task.strategies": "[centralised]",
                        "task.steady_state_s": 0.5})
-    a, b = braga_tbn.run(cfg), braga_tbn.run(cfg)
+    a, b = _run(cfg), _run(cfg)
     keep = a.metric != "wall_time_s"
     assert a[keep].value.tolist() == b[keep].value.tolist()
     for over, msg in (({"task.modes.pi_true": "[[0.9,0.2],[0.4,0.6]]"}, "sum to 1"),
@@ -531,3 +532,125 @@ def test_run_reproducible_and_bad_config():
                       ({"task.strategies": "[centralised,centralised]"}, "duplicates")):
         with pytest.raises(ConfigError, match=msg):
             _tiny_cfg(**over)
+
+
+# ------------------------------------------------------------------------------------------------------
+# dslearn.metrics.navigation: the errors against the truth, by hand
+
+
+def _nav_case():
+    """T = 4 steps, R = 1 run, C = 2 strategies, S = 2 nodes, K = 2 modes, with errors chosen by hand: the truth
+    sits at (1000, 1000) with zero velocity on the planar map z = 500 + 0.3 X - 0.4 Y."""
+    from dslearn.learning.online_em import TBNResult
+    from dslearn.sim.terrain import Scenario, TerrainMap
+
+    t_, s_ = 4, 2
+    yy, xx = torch.meshgrid(torch.arange(81.0) * 25.0, torch.arange(81.0) * 25.0, indexing="ij")
+    terrain = TerrainMap((500.0 + 0.3 * xx - 0.4 * yy).double(), 25.0)
+    x = torch.zeros(1, s_, t_ + 1, 4, dtype=torch.float64)
+    x[..., :2] = 1000.0
+    scn = Scenario(x, torch.zeros(1, s_, t_ + 1, dtype=torch.long), torch.zeros(1, s_, t_ + 1), terrain)
+    est = torch.zeros(t_, 1, 2, s_, 4, dtype=torch.float64)
+    est[..., :2] = 1000.0
+    est[:, 0, 0, 0, :2] += torch.tensor([3.0, 4.0], dtype=torch.float64)  # strategy 0, node 0: 5 m at every step
+    est[:, 0, 0, 1, 1] += torch.arange(1.0, 5.0, dtype=torch.float64)  # strategy 0, node 1: 1, 2, 3, 4 m
+    est[0, 0, 1, 1, 1] += 10.0  # strategy 1, node 1: 10 m at the first step only
+    est[:, 0, 0, 0, 2:] = torch.tensor([1.0, 2.0], dtype=torch.float64)  # a velocity error of sqrt(5) m/s
+    truth = make_params([0.0, 20.0], [1.0, 4.0], [[0.85, 0.15], [0.4, 0.6]])
+    mu = truth.mu.expand(t_, 1, 2, s_, 2).clone()
+    sigma = truth.sigma.expand(t_, 1, 2, s_, 2).clone()
+    pi = truth.pi.expand(t_, 1, 2, s_, 2, 2).clone()
+    mu[:, :, 0] += torch.tensor([1.0, -1.0], dtype=torch.float64)  # strategy 0: mu off by 1 in both modes
+    sigma[:, :, 0, :, 0] = 2.0  # strategy 0: sigma_1 off by 1
+    pi[:, :, 0, :, 0] = torch.tensor([0.75, 0.25], dtype=torch.float64)  # strategy 0: pi_11 off by 0.1
+    mu[:2, :, 1] += 7.0  # strategy 1: wrong only before the steady-state window
+    counters = {"resample_events": torch.tensor([[3, 0]]), "degenerate_events": torch.tensor([[1, 2]])}
+    return TBNResult(est, mu, sigma, pi, counters), scn, truth
+
+
+def test_navigation_errors_and_metrics_by_hand():
+    from dslearn.metrics.navigation import RUN_METRICS, tbn_errors, tbn_metrics
+
+    res, scn, truth = _nav_case()
+    err = tbn_errors(res, scn, detail=True)
+    want_se = torch.tensor([[25.0, 1.0], [25.0, 4.0], [25.0, 9.0], [25.0, 16.0]], dtype=torch.float64)
+    torch.testing.assert_close(err.pos_se[:, 0, 0], want_se, rtol=0, atol=1e-12)
+    torch.testing.assert_close(err.pos_se[:, 0, 1, 1], torch.tensor([100.0, 0, 0, 0], dtype=torch.float64),
+                               rtol=0, atol=1e-12)
+    torch.testing.assert_close(err.vel_se[:, 0, 0, 0], torch.full((4,), 5.0, dtype=torch.float64), rtol=0, atol=0)
+    # planar map: the height misfit is the slope times the position error, 0.3 * 3 - 0.4 * 4 = -0.7 m
+    torch.testing.assert_close(err.h_misfit[:, 0, 0, 0], torch.full((4,), -0.7, dtype=torch.float64), rtol=0,
+                               atol=1e-9)
+    assert tbn_errors(res, scn).vel_se is None
+    run, series = tbn_metrics(res, err, truth, steady_steps=2, first_steps=1, lost_track_m=4.0,
+                              rec_idx=torch.tensor([0, 3]))
+    assert tuple(run) == RUN_METRICS and all(v.shape == (1, 2) for v in run.values())
+    want = {  # (strategy 0, strategy 1)
+        "pos_rms": (math.sqrt((25 + 25 + 9 + 16) / 4), 0.0),  # the last 2 steps, both nodes
+        "pos_rms_first5s": (math.sqrt((25 + 1) / 2), math.sqrt(100 / 2)),  # the first step
+        "mu_rms": (1.0, 0.0), "sigma_rms": (math.sqrt(0.5), 0.0), "pi_rms": (math.sqrt(0.01 / 2), 0.0),
+        "pos_rms_worst_node": (5.0, 0.0),  # node RMS: 5 and sqrt(12.5)
+        "pos_err_max": (5.0, 10.0),
+        "lost_nodes": (1.0, 0.0), "lost_track": (1.0, 0.0),  # 5 > 4 m, sqrt(12.5) = 3.54 < 4 m
+        "resample_rate": (3 / 8, 0.0),  # per node and step: 4 steps x 2 nodes
+        "degenerate_events": (1.0, 2.0),
+    }
+    for name, (a, b) in want.items():
+        got = run[name][0].tolist()
+        assert got == pytest.approx([a, b], rel=1e-12, abs=1e-12), name
+    assert set(series) == {"pos_se_t", "mu_se_t", "sigma_se_t", "pi_se_t", "mu_1", "mu_2", "sigma_1", "sigma_2",
+                           "pi_11", "pi_22"}
+    def close(got, rows):
+        torch.testing.assert_close(got, torch.tensor(rows, dtype=torch.float64), rtol=0, atol=1e-12)
+
+    close(series["pos_se_t"][:, 0], [[13.0, 50.0], [20.5, 0.0]])  # (recorded step, strategy), node-averaged
+    close(series["mu_se_t"][:, 0], [[1.0, 49.0], [1.0, 0.0]])
+    assert series["sigma_se_t"][:, 0, 0].tolist() == pytest.approx([0.5, 0.5], abs=1e-12)
+    assert series["pi_se_t"][:, 0, 0].tolist() == pytest.approx([0.005, 0.005], abs=1e-12)
+    close(series["mu_1"][:, 0], [[1.0, 7.0], [1.0, 0.0]])  # the estimates
+    assert series["mu_2"][:, 0, 0].tolist() == pytest.approx([19.0, 19.0], abs=1e-12)
+    assert series["sigma_1"][:, 0, 0].tolist() == [2.0, 2.0] and series["pi_11"][:, 0, 0].tolist() == [0.75, 0.75]
+    res.est[1, 0, 0, 0, 0] = float("nan")
+    with pytest.raises(FloatingPointError):
+        tbn_errors(res, scn)
+
+
+def test_navigation_rows_layout():
+    from dslearn.metrics.navigation import RUN_METRICS, tbn_errors, tbn_metrics, tbn_rows
+    from dslearn.studies.braga_tbn import consensus_label
+
+    res, scn, truth = _nav_case()
+    run, series = tbn_metrics(res, tbn_errors(res, scn), truth, steady_steps=2, first_steps=1, lost_track_m=4.0,
+                              rec_idx=torch.tensor([0, 3]))
+    strategies = ("noncooperative", "consensus_5")
+    assert [consensus_label(s) for s in ("noncooperative", "centralised", "consensus_5")] == \
+        ["none", "fusion_centre", "average_q5"]
+    rows = tbn_rows(run, series, {"noncooperative": 0.0, "consensus_5": 23.4375}, episodes=[7], strategies=strategies,
+                    consensus={s: consensus_label(s) for s in strategies}, rec_time=[0.05, 0.2000000001], model="m")
+    per = len(RUN_METRICS) + 1 + len(series) * 2
+    assert len(rows) == 2 * per
+    assert list(rows[0]) == ["episode", "strategy", "model", "consensus", "node", "time_s", "metric", "value"]
+    first = rows[per:]  # the second strategy: run-level rows, throughput, then the series
+    assert [r["metric"] for r in first[:len(RUN_METRICS) + 1]] == [*RUN_METRICS, "throughput_kBps"]
+    assert all((r["episode"], r["strategy"], r["consensus"], r["node"], r["model"]) ==
+               (7, "consensus_5", "average_q5", "avg", "m") for r in first)
+    thr = first[len(RUN_METRICS)]
+    assert (thr["time_s"], thr["value"]) == (-1.0, 23.4375)
+    pos = [r for r in first if r["metric"] == "pos_se_t"]
+    assert [(r["time_s"], r["value"]) for r in pos] == [(0.05, 50.0), (0.2, 0.0)]  # times rounded to 1e-6
+    assert next(r for r in rows if r["metric"] == "pos_err_max")["value"] == 5.0
+
+
+def test_the_study_reads_no_configuration():
+    """The study module names no config machinery and imports neither the composition root nor the schemas."""
+    import ast
+    import re
+    from pathlib import Path
+
+    import dslearn.studies.braga_tbn as study
+
+    text = Path(study.__file__).read_text(encoding="utf-8")
+    assert not re.search(r"omegaconf|hydra|DictConfig|\bcfg\.|to_plain", text, re.IGNORECASE)
+    mods = [n.module for n in ast.walk(ast.parse(text)) if isinstance(n, ast.ImportFrom)]
+    mods += [a.name for n in ast.walk(ast.parse(text)) if isinstance(n, ast.Import) for a in n.names]
+    assert not [m for m in mods if m and m.split(".")[:2] in (["dslearn", "compose"], ["dslearn", "schemas"])]

@@ -31,6 +31,7 @@ CONTEXT = {
     "ethucy_tracking/no_gp": ["experiment=real_tables", "task.models=[lin,sfm]"],
     "ethucy_tracking/synthetic": ["experiment=gp_vs_lstm"],
     "liu_dgpt/s3": ["experiment=liu_table1", "scenario=s3"],
+    "matrix": ["task=matrix", "model=lin"],
 }
 
 #: what each study reads of the root groups (from dslearn/studies/<task>.py)
@@ -40,6 +41,9 @@ READS = {
     # models and fusions of the grid are task.models / task.fusions, the episodes task.*_episodes
     "yu_faults": {"scenario", "network", "observation", "filter", "consensus.iterations"},
     "liu_dgpt": set(),
+    # a cell: the scenario, the network part (Yu's scenario places no sensors of its own), the method's engine
+    # (filter) and the parts the distributed filter takes; the episodes are task.*_episodes
+    "matrix": {"scenario", "network", "filter", "model", "observation", "consensus", "method"},
     "jiang_fg": set(),
     "braga_tbn": set(),
     "ethucy_forecast": set(),

@@ -27,7 +27,7 @@ import math
 import torch
 from torch import Tensor
 
-from dslearn.errors import check_choice
+from dslearn.errors import ConfigError, check_choice
 
 AGGREGATIONS = ("poe", "gpoe", "bcm", "rbcm", "grbcm")
 
@@ -179,3 +179,46 @@ def ucb_bound_grbcm(var: Tensor, beta: Tensor, mask: Tensor, comm_var: Tensor, d
     w_c = (1.0 - b.sum(-1)) * agg / cv
     g = ucb_gamma(mask.sum(-1) + 1, delta).to(var.dtype)
     return g.sqrt() * ((w_i.abs() * v.sqrt()).sum(-1) + w_c.abs() * cv.sqrt())
+
+
+#: the rules a fusion centre of local GP experts can apply by itself (grBCM also needs a communication set
+#: shared with every sensor: the Liu study runs it, ``task.aggregations``)
+CENTRE_RULES = ("poe", "gpoe", "bcm", "rbcm")
+#: the rules that weight the experts by Eq. 7 (``normalise_beta`` applies to them only)
+WEIGHTED_RULES = ("gpoe", "rbcm")
+
+
+class AggregationRule:
+    """The fusion part of a method whose local GP experts are combined at a fusion centre (Liu et al.'s
+    DGPT): one aggregation rule of :func:`aggregate`. It is a part of a different kind from the
+    information-form fusions of :mod:`dslearn.fusion.strategies` (``kind = "aggregation"``): a method
+    declares the kind it takes.
+
+    Args:
+        rule: one of :data:`CENTRE_RULES`.
+        normalise_beta: gPoE / rBCM with :math:`\\beta_i / \\sum_j \\beta_j` (Eq. 7 normalised); the
+            unweighted rules (PoE, BCM) refuse ``True``.
+    """
+
+    kind = "aggregation"
+
+    def __init__(self, rule: str, normalise_beta: bool = False):
+        check_choice("consensus.rule", rule, CENTRE_RULES)
+        if not isinstance(normalise_beta, bool):
+            raise ConfigError(f"consensus.normalise_beta={normalise_beta!r} must be true or false")
+        if normalise_beta and rule not in WEIGHTED_RULES:
+            raise ConfigError(f"consensus.normalise_beta=true weights the experts of {list(WEIGHTED_RULES)}; "
+                              f"consensus.rule={rule!r} has no weights to normalise")
+        self.rule = rule
+        self.normalise_beta = normalise_beta
+
+    @property
+    def name(self) -> str:
+        return self.rule
+
+    def __call__(self, mean: Tensor, var: Tensor, mask: Tensor, prior_var):
+        """:func:`aggregate` with this rule: ``(mean, var, beta)``."""
+        return aggregate(mean, var, mask, prior_var, self.rule, self.normalise_beta)
+
+    def __repr__(self) -> str:
+        return f"AggregationRule(rule={self.rule!r}, normalise_beta={self.normalise_beta})"

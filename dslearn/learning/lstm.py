@@ -60,7 +60,7 @@ def train_forecast_lstm(social: bool, train_w: Tensor, val_w: Tensor, c, obs_len
     tr = train_w if social else per_agent(train_w).unsqueeze(2)
     va = val_w if social else per_agent(val_w).unsqueeze(2)
     kw = schedule_from_config(c, prefix="task.lstm")
-    if social and c.get("social_batch_size") is not None:
+    if social and getattr(c, "social_batch_size", None) is not None:
         kw["batch_size"] = int(c.social_batch_size)
     hist = train_lstm(model, tr, **kw, val_windows=va, seed=train_seed, progress=progress)
     extra = {"epochs_run": len(hist), "best_epoch": hist.attrs["best_epoch"], "best_val_loss": hist.attrs["best_val_loss"],

@@ -8,15 +8,17 @@ Per time step t (all batches at once):
 3. after the burn-in, every node runs the M-step (Eq. 8) on its combined statistics.
 
 All strategies of one Monte Carlo run see the same truth and measurements (common random numbers).
-:func:`run_tbn` sees only the measurements (and the initial state, known in the paper's Section VI);
-:func:`score_tbn` computes the errors against the truth. The Monte Carlo harness of the study
-(:func:`tbn_params`, :func:`prepare_job`, :func:`simulate_and_filter`) builds the terrain, the models
-and each batch's flights from the plain values of a checked ``braga_tbn`` task (:mod:`dslearn.schemas.braga_tbn`;
-the study converts its configuration, :func:`dslearn.studies.braga_tbn.job_from_config`).
+:func:`run_tbn` sees only the measurements (and the initial state, known in the paper's Section VI); the
+errors against the truth are computed by :mod:`dslearn.metrics.navigation`. The Monte Carlo harness of the
+study (:func:`tbn_params`, :func:`prepare_job`, :func:`simulate_and_filter`) builds the terrain, the models
+and each batch's flights from the plain values of a checked ``braga_tbn`` task (the study's typed settings,
+:class:`dslearn.studies.braga_tbn.BragaTask`, or the same values as nested plain dicts) and returns the
+estimates and the simulated truth side by side.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import torch
@@ -28,7 +30,7 @@ from dslearn.fusion.statistics import (combination_matrices, network_adjacency, 
                                        throughput_bytes_per_step, weight_matrix)
 from dslearn.models.jmnls import NoiseParams, m_step, make_params, params_dim, stats_dim
 from dslearn.models.linear_gaussian import LinearGaussianDynamics
-from dslearn.sim.terrain import Scenario, cv_model, make_terrain, simulate
+from dslearn.sim.terrain import Scenario, TerrainMap, cv_model, make_terrain, simulate
 from dslearn.streams import Streams
 
 
@@ -40,13 +42,10 @@ class TBNResult:
         est: (T, R, C, S, 4) posterior-mean states (position, velocity) after step t.
         mu, sigma: (T, R, C, S, K) parameter estimates after the step-t M-step.
         pi: (T, R, C, S, K, K) TPM estimates.
-        pos_se: (T, R, C, S) squared position error ||p_hat - p||^2 [m^2], filled by :func:`score_tbn`
-            (the filter itself never sees the truth).
-        diagnostics: with ``diagnostics=True``, per-step (T, R, C, S) traces: ``ess`` (before resampling),
-            ``spread`` (weighted RMS distance of the particle positions from their mean [m]), ``p_mode_last``
-            (posterior probability of the last mode), ``resampled`` (bool), and from :func:`score_tbn`
-            ``vel_se`` (squared velocity error [(m/s)^2]) and ``h_misfit`` (terrain height at the estimate minus
-            at the truth [m]).
+        diagnostics: with ``diagnostics=True``, per-step (T, R, C, S) traces of the filter (no truth in them):
+            ``ess`` (before resampling), ``spread`` (weighted RMS distance of the particle positions from their
+            mean [m]), ``p_mode_last`` (posterior probability of the last mode), ``resampled`` (bool). The
+            errors against the truth are :func:`dslearn.metrics.navigation.tbn_errors`.
         counters: event counts: ``resample_events`` and ``degenerate_events`` (R, C) summed over nodes and
             time (a degenerate event = all weights of a node underflowed and were reset to uniform),
             ``sigma_clamped``, ``offmap_particles`` (sampled every 50 steps), ``filter_steps``.
@@ -58,7 +57,6 @@ class TBNResult:
     pi: Tensor
     counters: dict = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
-    pos_se: Tensor | None = None
 
 
 def run_tbn(y: Tensor, terrain, x0: Tensor, strategies, weights: Tensor, init: NoiseParams,
@@ -155,99 +153,155 @@ def run_tbn(y: Tensor, terrain, x0: Tensor, strategies, weights: Tensor, init: N
     return TBNResult(est_tr, mu_tr, sg_tr, pi_tr, counters, diag)
 
 
-def score_tbn(res: TBNResult, scn: Scenario) -> TBNResult:
-    """The metrics that need the truth: ``res.pos_se`` and, with diagnostics, ``vel_se`` / ``h_misfit``."""
-    xt = scn.x[:, None, :, 1:].permute(3, 0, 1, 2, 4)  # (T, R, 1, S, 4)
-    d = res.est[..., :2] - xt[..., :2]
-    res.pos_se = (d * d).sum(-1)
-    if res.diagnostics:
-        dv = res.est[..., 2:] - xt[..., 2:]
-        res.diagnostics["vel_se"] = (dv * dv).sum(-1)
-        res.diagnostics["h_misfit"] = scn.terrain(res.est) - scn.terrain(xt)
-    if not torch.isfinite(res.pos_se).all():
-        raise FloatingPointError("non-finite position error in score_tbn")
-    return res
-
-
 # ----------------------------------------------------------------------------------------- MC harness
 KERNEL_DTYPES = {None: None, "float32": torch.float32, "float64": torch.float64}
+STATE_DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
-def tbn_params(task: dict) -> dict:
-    """Plain values and built objects (true / initial parameters, graph, weights) of a checked ``braga_tbn``
-    task given as plain values (nested dicts, lists and numbers, resolved: the caller converts its configuration)."""
-    if not isinstance(task, dict):
-        raise TypeError(f"tbn_params takes the task as a plain dict, not {type(task).__name__}")
+@dataclass(frozen=True)
+class TBNParams:
+    """What the harness needs of a checked ``braga_tbn`` task: plain values and the objects built from
+    them (the true and initial noise parameters, the finger-four graph and its consensus weights)."""
+
+    strategies: tuple[str, ...]
+    num_particles: int
+    steps: int
+    dt: float
+    filter_streams: str
+    record_every: int
+    zoom_s: float
+    bytes_per_float: int
+    kilobyte: int
+    process_noise: float
+    truth_process_noise: float
+    formation_spacing: float
+    v0: tuple[float, float]
+    start: tuple[float, float]
+    truth: NoiseParams
+    init: NoiseParams
+    eta_exponent: float
+    burn_in: int
+    sigma_floor: float
+    init_mode: str
+    ess_threshold: float
+    regularise: float
+    jitter: tuple[float, float]
+    kernel_dtype: torch.dtype | None
+    terrain: dict
+    terrain_seed_offset: int
+    adj: Tensor
+    fusion_centre: int
+    weights: Tensor
+
+
+def tbn_params(task) -> TBNParams:
+    """The :class:`TBNParams` of a checked ``braga_tbn`` task: its typed settings (a dataclass instance with
+    the task's fields) or the same values as nested plain dicts, lists and numbers."""
+    if dataclasses.is_dataclass(task) and not isinstance(task, type):
+        task = dataclasses.asdict(task)
+    if not isinstance(task, dict):  # plain dicts only: a lazy mapping of the composition is converted before
+        raise TypeError(f"tbn_params takes the task's settings (a dataclass) or plain dicts, not {type(task).__name__}")
     t = task
-    p = {k: t[k] for k in ("mc_runs", "mc_batch", "num_particles", "steps", "workers", "strategies",
-                           "bytes_per_float", "kilobyte", "filter_streams", "record_every")}
-    for k in ("dt", "process_noise", "formation_spacing", "steady_state_s", "truth_process_noise", "lost_track_m",
-              "zoom_s"):
-        p[k] = float(t[k])
-    p["v0"], p["start"] = [float(a) for a in t["v0"]], [float(a) for a in t["start"]]
     m, em, bk, tr = t["modes"], t["em"], t["backward_kernel"], t["terrain"]
-    p["truth"] = make_params(m["mu_true"], m["sigma_true"], m["pi_true"], prefix="task.modes (true)")
-    p["init"] = make_params(m["mu_init"], m["sigma_init"], m["pi_init"], prefix="task.modes (initial)")
-    p["eta_exponent"], p["burn_in"], p["sigma_floor"] = float(em["eta_exponent"]), em["burn_in"], float(em["sigma_floor"])
-    p["init_mode"] = "true" if em["init_mode"] is True else em["init_mode"]  # `init_mode=true` on the CLI: a bool
-    p["ess_threshold"], p["regularise"] = float(t["ess_threshold"]), float(t["resampling"]["regularise"])
-    p["jitter"] = (float(bk["jitter_pos"]), float(bk["jitter_vel"]))
-    p["kernel_dtype"] = KERNEL_DTYPES[bk["dtype"]]
-    p["terrain"] = {k: float(tr[k]) for k in ("size_m", "resolution_m", "smoothing_m", "elevation_std_m",
-                                               "mean_elevation_m")}
-    p["terrain_seed_offset"] = int(tr["seed_offset"])
-    p["adj"] = network_adjacency(4, t["network"]["edges"])  # finger four: 4 aircraft
-    p["fusion_centre"] = t["network"]["fusion_centre"]
-    p["weights"] = weight_matrix(p["adj"], t["consensus"]["weights"], t["consensus"]["matrix"])
-    return p
+    adj = network_adjacency(4, t["network"]["edges"])  # finger four: 4 aircraft
+    return TBNParams(
+        strategies=tuple(str(s) for s in t["strategies"]), num_particles=int(t["num_particles"]), steps=int(t["steps"]),
+        dt=float(t["dt"]), filter_streams=str(t["filter_streams"]), record_every=int(t["record_every"]),
+        zoom_s=float(t["zoom_s"]), bytes_per_float=int(t["bytes_per_float"]), kilobyte=int(t["kilobyte"]),
+        process_noise=float(t["process_noise"]), truth_process_noise=float(t["truth_process_noise"]),
+        formation_spacing=float(t["formation_spacing"]),
+        v0=tuple(float(a) for a in t["v0"]), start=tuple(float(a) for a in t["start"]),
+        truth=make_params(m["mu_true"], m["sigma_true"], m["pi_true"], prefix="task.modes (true)"),
+        init=make_params(m["mu_init"], m["sigma_init"], m["pi_init"], prefix="task.modes (initial)"),
+        eta_exponent=float(em["eta_exponent"]), burn_in=int(em["burn_in"]), sigma_floor=float(em["sigma_floor"]),
+        init_mode="true" if em["init_mode"] is True else str(em["init_mode"]),  # `init_mode=true` on the CLI: a bool
+        ess_threshold=float(t["ess_threshold"]), regularise=float(t["resampling"]["regularise"]),
+        jitter=(float(bk["jitter_pos"]), float(bk["jitter_vel"])), kernel_dtype=KERNEL_DTYPES[bk["dtype"]],
+        terrain={k: float(tr[k]) for k in ("size_m", "resolution_m", "smoothing_m", "elevation_std_m",
+                                           "mean_elevation_m")},
+        terrain_seed_offset=int(tr["seed_offset"]), adj=adj, fusion_centre=int(t["network"]["fusion_centre"]),
+        weights=weight_matrix(adj, t["consensus"]["weights"], t["consensus"]["matrix"]),
+    )
 
 
-def prepare_job(task: dict, *, seed: int, device: str, dtype: str, progress: bool = False) -> dict:
+@dataclass
+class TBNJob:
+    """Everything the Monte Carlo batches of one study share (:func:`prepare_job`); picklable, so worker
+    processes get it whole.
+
+    Attributes:
+        params: the task's values (:class:`TBNParams`).
+        terrain: the map; truth: the true noise parameters (run dtype and device).
+        truth_dyn, filt_dyn: the aircraft's and the filters' constant-velocity models.
+        seed, device, dtype: the run's.
+        rec_idx, rec_time: the recorded steps (indices into the T steps) and their times [s].
+        throughput: strategy -> communication throughput [kB/s] (Table II).
+    """
+
+    params: TBNParams
+    terrain: TerrainMap
+    truth: NoiseParams
+    truth_dyn: LinearGaussianDynamics
+    filt_dyn: LinearGaussianDynamics
+    seed: int
+    device: torch.device
+    dtype: torch.dtype
+    rec_idx: Tensor
+    rec_time: list[float]
+    throughput: dict[str, float]
+
+
+def prepare_job(task, *, seed: int, device: torch.device | str, dtype: torch.dtype | str) -> TBNJob:
     """Everything the Monte Carlo batches share (terrain, models, recording grid, throughput) from a checked
-    task as plain values (:func:`tbn_params`), the run's ``seed``, ``device``, ``dtype`` (``float64`` or
-    ``float32``) and whether to show progress."""
-    p = tbn_params(task)
+    task (:func:`tbn_params`: its typed settings or plain values), the run's ``seed``, ``device`` and ``dtype``
+    (``float64`` or ``float32``)."""
+    p = task if isinstance(task, TBNParams) else tbn_params(task)
     device = torch.device(str(device))
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device=cuda but CUDA is not available")
-    dtype = {"float64": torch.float64, "float32": torch.float32}[str(dtype)]
-    seed, progress = int(seed), bool(progress)
+    if isinstance(dtype, str):
+        dtype = STATE_DTYPES[dtype]
+    if dtype not in STATE_DTYPES.values():
+        raise ConfigError(f"dtype={dtype}: the TBN harness runs in {list(STATE_DTYPES)}")
+    seed = int(seed)
     kw = dict(dtype=dtype, device=device)
-    tgen = torch.Generator(device=device).manual_seed(seed * 7919 + p["terrain_seed_offset"] + 17)
-    terrain = make_terrain(**p["terrain"], gen=tgen, **kw)
-    truth = p["truth"]
+    tgen = torch.Generator(device=device).manual_seed(seed * 7919 + p.terrain_seed_offset + 17)
+    terrain = make_terrain(**p.terrain, gen=tgen, **kw)
+    truth = p.truth
     truth = type(truth)(truth.mu.to(**kw), truth.sigma.to(**kw), truth.pi.to(**kw))
-    truth_dyn = cv_model(p["dt"], max(p["truth_process_noise"], 1e-12), p["jitter"], **kw)
-    filt_dyn = cv_model(p["dt"], p["process_noise"], p["jitter"], kernel_dtype=p["kernel_dtype"], **kw)
-    steps, dt = p["steps"], p["dt"]
-    n_zoom = int(round(p["zoom_s"] / dt))
-    rec = [t for t in range(1, steps + 1) if t <= n_zoom or t % p["record_every"] == 0]
-    thr = {sname: throughput_bytes_per_step(sname, p["adj"], stats_dim(truth.k), params_dim(truth.k),
-                                            fusion_centre=p["fusion_centre"], bytes_per_float=p["bytes_per_float"])
-                  / dt / p["kilobyte"] for sname in p["strategies"]}
-    return dict(p=p, terrain=terrain, truth=truth, truth_dyn=truth_dyn, filt_dyn=filt_dyn, seed=seed,
-                device=str(device), dtype=dtype, rec_idx=torch.tensor([t - 1 for t in rec], device=device),
-                rec_time=[t * dt for t in rec], thr=thr, progress=progress)
+    truth_dyn = cv_model(p.dt, max(p.truth_process_noise, 1e-12), p.jitter, **kw)
+    filt_dyn = cv_model(p.dt, p.process_noise, p.jitter, kernel_dtype=p.kernel_dtype, **kw)
+    steps, dt = p.steps, p.dt
+    n_zoom = int(round(p.zoom_s / dt))
+    rec = [t for t in range(1, steps + 1) if t <= n_zoom or t % p.record_every == 0]
+    thr = {sname: throughput_bytes_per_step(sname, p.adj, stats_dim(truth.k), params_dim(truth.k),
+                                            fusion_centre=p.fusion_centre, bytes_per_float=p.bytes_per_float)
+                  / dt / p.kilobyte for sname in p.strategies}
+    return TBNJob(params=p, terrain=terrain, truth=truth, truth_dyn=truth_dyn, filt_dyn=filt_dyn, seed=seed,
+                  device=device, dtype=dtype, rec_idx=torch.tensor([t - 1 for t in rec], device=device),
+                  rec_time=[t * dt for t in rec], throughput=thr)
 
 
-def simulate_and_filter(job: dict, episodes: list[int], diagnostics: bool = False, nodes: list[int] | None = None):
-    """Truth, measurements, every strategy's filters and their scores for the Monte Carlo runs ``episodes``.
+def simulate_and_filter(job: TBNJob, episodes: list[int], diagnostics: bool = False, nodes: list[int] | None = None,
+                        progress: bool = False) -> tuple[Scenario, TBNResult]:
+    """Truth, measurements and every strategy's filters for the Monte Carlo runs ``episodes``.
 
     Run ``ep`` draws its truth and measurements from the stream (seed, "truth", ep) and each strategy's filter
     from (seed, "filter", ep) (``task.filter_streams=common``: common random numbers) or
     (seed, "filter", ep, strategy) (``independent``), whatever the batch, worker or strategy list.
     ``nodes``: filter only these aircraft (non-cooperative strategies only; for diagnosis).
-    Returns ``(scenario, TBNResult)``."""
-    p, terrain, truth = job["p"], job["terrain"], job["truth"]
-    seed, device, strategies = job["seed"], torch.device(job["device"]), p["strategies"]
+    Returns ``(scenario, TBNResult)``: the simulated truth and the filters' estimates, side by side (their
+    errors: :func:`dslearn.metrics.navigation.tbn_errors`)."""
+    p, terrain, truth = job.params, job.terrain, job.truth
+    seed, device, strategies = job.seed, torch.device(job.device), p.strategies
     nr = len(episodes)
-    common = p["filter_streams"] == "common"
+    common = p.filter_streams == "common"
     truth_gen = Streams.from_keys([(seed, "truth", ep) for ep in episodes], (nr,), device=device)
     filt_gen = Streams.from_keys([(seed, "filter", ep) if common else (seed, "filter", ep, sname)
                                   for ep in episodes for sname in strategies], (nr, len(strategies)), device=device)
-    scn = simulate(terrain, truth, job["truth_dyn"], runs=nr, start=torch.tensor(p["start"]),
-                   v0=torch.tensor(p["v0"]), spacing=p["formation_spacing"], steps=p["steps"], gen=truth_gen)
-    weights = p["weights"]
+    scn = simulate(terrain, truth, job.truth_dyn, runs=nr, start=torch.tensor(list(p.start)),
+                   v0=torch.tensor(list(p.v0)), spacing=p.formation_spacing, steps=p.steps, gen=truth_gen)
+    weights = p.weights
     if nodes is not None:
         if any(parse_strategy(sn)[0] != "noncooperative" for sn in strategies):
             raise ConfigError("filtering a subset of the nodes needs task.strategies=[noncooperative] (the other "
@@ -256,9 +310,9 @@ def simulate_and_filter(job: dict, episodes: list[int], diagnostics: bool = Fals
         scn = Scenario(scn.x[:, idx], scn.r[:, idx], scn.y[:, idx], scn.terrain)
         weights = torch.eye(len(nodes), dtype=weights.dtype)
     # the filters get the measurements and the initial state / mode (known at t = 0, Section VI)
-    res = run_tbn(scn.y, scn.terrain, scn.x[:, :, 0], strategies, weights, p["init"], job["filt_dyn"],
-                  r0=scn.r[..., 0], num_particles=p["num_particles"], gen=filt_gen, burn_in=p["burn_in"],
-                  progress=job["progress"], diagnostics=diagnostics, eta_exponent=p["eta_exponent"],
-                  ess_threshold=p["ess_threshold"], sigma_floor=p["sigma_floor"], init_mode=p["init_mode"],
-                  regularise=p["regularise"])
-    return scn, score_tbn(res, scn)
+    res = run_tbn(scn.y, scn.terrain, scn.x[:, :, 0], list(strategies), weights, p.init, job.filt_dyn,
+                  r0=scn.r[..., 0], num_particles=p.num_particles, gen=filt_gen, burn_in=p.burn_in,
+                  progress=progress, diagnostics=diagnostics, eta_exponent=p.eta_exponent,
+                  ess_threshold=p.ess_threshold, sigma_floor=p.sigma_floor, init_mode=p.init_mode,
+                  regularise=p.regularise)
+    return scn, res

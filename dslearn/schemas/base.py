@@ -96,14 +96,20 @@ def check_ranges(node: Any, schema: type, prefix: str) -> None:
 
 #: the root config groups a task may read besides its own ``task`` node (``conf/config.yaml``'s defaults)
 ROOT_GROUPS = ("scenario", "network", "model", "observation", "consensus", "filter", "data")
+#: root groups whose options are presets: each selects options of other root groups (``conf/method/*.yaml``:
+#: ``# @package _global_``, ``override /filter: ...``) and sets no key of its own. A task reads a preset group
+#: only where it names it in ``uses`` (a task that reads every root group does not read them)
+PRESET_GROUPS = ("method",)
+#: what a task that does not name a preset group uses instead (unless it says so itself)
+PRESET_INSTEAD = {"method": "method presets select the parts of a matrix cell, task=matrix"}
 
 
 @dataclasses.dataclass(frozen=True)
 class TaskSpec:
     """A task's schema, cross-field check and what it reads of the root groups.
 
-    ``uses``: the root groups (:data:`ROOT_GROUPS`) the task reads, or keys under one it reads alone
-    (``"consensus.iterations"``); a function of the composed config where that depends on the task's
+    ``uses``: the root groups (:data:`ROOT_GROUPS`, :data:`PRESET_GROUPS`) the task reads, or keys under one it
+    reads alone (``"consensus.iterations"``); a function of the composed config where that depends on the task's
     own keys. ``instead``: per root group it does not use, what it uses instead (for the message).
     ``unused``: a function of the composed config giving task keys this configuration does not read
     (``{"task.aggregations": "why"}``). Overriding any of them is refused by :func:`check_overrides`."""
@@ -127,11 +133,12 @@ def register_task(name: str, schema: type, check: Callable[[DictConfig], None] |
     from hydra.core.config_store import ConfigStore
 
     paths = () if callable(uses) else tuple(uses)
-    bad = [u for u in paths if u.split(".")[0] not in ROOT_GROUPS]
+    bad = [u for u in paths if u.split(".")[0] not in ROOT_GROUPS + PRESET_GROUPS]
     if bad:
-        raise TypeError(f"task {name}: uses={bad} names no root group; root groups: {list(ROOT_GROUPS)}")
+        raise TypeError(f"task {name}: uses={bad} names no root group; root groups: {list(ROOT_GROUPS + PRESET_GROUPS)}")
     ConfigStore.instance().store(group="schema/task", name=name, node=schema)
-    TASKS[name] = TaskSpec(name, schema, check, uses if callable(uses) else paths, dict(instead or {}), unused)
+    TASKS[name] = TaskSpec(name, schema, check, uses if callable(uses) else paths,
+                           {**PRESET_INSTEAD, **(instead or {})}, unused)
     return schema
 
 
@@ -161,7 +168,7 @@ def check_overrides(cfg: DictConfig, overrides) -> None:
     unused = None
     for key, line in overrides:
         head = key.split(".")[0]
-        if head in ROOT_GROUPS:
+        if head in ROOT_GROUPS or head in PRESET_GROUPS:
             if used is None:
                 used = task_uses(cfg)
             if any(_within(key, u) for u in used):

@@ -60,12 +60,13 @@ CORE_TASKS = ("yu", "yu_faults")
 #: importable callable.
 TASK_TARGETS: dict[str, str] = {
     "yu": "dslearn.studies.yu.YuStudy",
-    "yu_faults": "dslearn.studies.yu_faults:run",
-    "ethucy_tracking": "dslearn.studies.ethucy_tracking:run",
-    "ethucy_forecast": "dslearn.studies.ethucy_forecast:run",
-    "liu_dgpt": "dslearn.studies.liu_dgpt:run",
-    "jiang_fg": "dslearn.studies.jiang_fg:run",
-    "braga_tbn": "dslearn.studies.braga_tbn:run",
+    "yu_faults": "dslearn.studies.yu_faults.YuFaultsStudy",
+    "ethucy_tracking": "dslearn.studies.ethucy_tracking.EthucyTrackingStudy",
+    "ethucy_forecast": "dslearn.studies.ethucy_forecast.EthucyForecastStudy",
+    "liu_dgpt": "dslearn.studies.liu_dgpt.LiuDgptStudy",
+    "jiang_fg": "dslearn.studies.jiang_fg.JiangFgStudy",
+    "braga_tbn": "dslearn.studies.braga_tbn.BragaStudy",
+    "matrix": "dslearn.studies.matrix.MatrixCell",
 }
 #: share of the machine's memory a run may plan to use unless ``+max_memory_gb=...`` says otherwise
 MEMORY_SHARE = 0.75
@@ -198,7 +199,7 @@ class ConsensusSchema(PartSchema):
 
 
 @dataclass
-class FilterSchema:
+class FilterSchema(PartSchema):  # _target_: the method the filter engine makes (dslearn.methods.distributed)
     prior_pos_std: float = 1000.0
     prior_vel_std: float = 1000.0
     learn_gate_std: Optional[float] = 2.0
@@ -329,6 +330,7 @@ def validate_config(cfg: DictConfig) -> None:
         if not isinstance(v, str) or not v:
             raise ConfigError(f"task.{k}={v!r} must be a non-empty string")
     check_target(cfg.task[key], key)
+    check_engine_parts(cfg)
     if cfg.task.name in CORE_TASKS:
         validate_core(cfg)
     validate_task(cfg)
@@ -336,6 +338,87 @@ def validate_config(cfg: DictConfig) -> None:
         check_memory(cfg, r.max_memory_gb)
         check_parts(cfg)
 
+
+# ------------------------------------------------------------------------------------------------
+# the kinds of filter and fusion part (the consensus and filter groups hold parts of more than one method)
+
+#: the engine of the distributed-filter studies (their ``filter`` group's ``_target_``); task=matrix takes any method
+DISTRIBUTED_FILTER = "dslearn.methods.distributed.DistributedFilter"
+#: what a fusion part of each kind is, for the messages
+FUSION_KINDS = {"information": "an information-form fusion of the distributed filter",
+                "aggregation": "a GP aggregation rule of a fusion centre (Liu et al.'s DGPT)"}
+
+
+def _target_class(target: str):
+    """The class a ``_target_`` names (a ``Class.factory`` classmethod: its class); None if it cannot be imported."""
+    from hydra.utils import get_object
+
+    try:
+        obj = get_object(str(target))
+    except Exception:  # noqa: BLE001 - an import error is the builder's to report, naming the key
+        return None
+    return getattr(obj, "__self__", obj)
+
+
+def fusion_kind(target: str) -> str | None:
+    """The kind of the fusion part ``target`` builds: ``information`` (a :class:`dslearn.fusion.strategies.Fusion`),
+    the kind the class declares (``kind``, e.g. ``aggregation``), or None where unknown."""
+    from dslearn.fusion.strategies import Fusion
+
+    cls = _target_class(target)
+    if cls is None:
+        return None
+    if isinstance(cls, type) and issubclass(cls, Fusion):
+        return "information"
+    return getattr(cls, "kind", None)
+
+
+def _kind_options(kind: str) -> list[str]:
+    """The ``conf/consensus`` options (every config folder) whose part is of ``kind``."""
+    names = []
+    for d in CONF_DIRS:
+        for p in sorted((Path(d) / "consensus").glob("*.yaml")):
+            try:
+                target = OmegaConf.load(p).get("_target_")
+            except Exception:  # noqa: BLE001 - a broken option is reported where it is selected
+                continue
+            if target and fusion_kind(str(target)) == kind and p.stem not in names:
+                names.append(p.stem)
+    return names
+
+
+def check_engine_parts(cfg: DictConfig) -> None:
+    """The ``filter`` and ``consensus`` parts must be of the kinds the task takes: the distributed-filter
+    studies run the distributed filter (``filter=default|ukf``), whose fusion is information-form;
+    ``task=matrix`` takes any method as its filter part, with the kind of fusion part the method declares
+    (``fusion_kind``; information-form where it declares none: Liu et al.'s DGPT takes an aggregation rule).
+    ConfigError naming the option and the options of the kind that fits."""
+    from dslearn.schemas.base import task_uses
+
+    used = {u.split(".")[0] for u in task_uses(cfg)}
+    task = str(cfg.task.name)
+    matrix = task == "matrix"
+    filt = cfg.get("filter")
+    ftarget = str(filt.get("_target_")) if isinstance(filt, DictConfig) and filt.get("_target_") else None
+    if "filter" in used and not matrix and ftarget is not None and ftarget != DISTRIBUTED_FILTER:
+        raise ConfigError(f"filter._target_={ftarget} is a method of the comparison matrix (task=matrix); task={task} "
+                          f"runs the distributed filter ({DISTRIBUTED_FILTER}): filter=default|ukf")
+    cons = cfg.get("consensus")
+    if "consensus" not in used or not isinstance(cons, DictConfig) or not cons.get("_target_"):
+        return
+    have = fusion_kind(str(cons._target_))
+    if have is None:
+        return
+    want, who = "information", f"task={task}'s distributed filter"
+    if matrix and ftarget is not None:
+        cls = _target_class(ftarget)
+        if cls is None:
+            return
+        want, who = getattr(cls, "fusion_kind", "information"), f"filter._target_={ftarget}"
+    if have != want:
+        name = cons.get("name") or cons._target_
+        raise ConfigError(f"consensus={name} is {FUSION_KINDS.get(have, have)}; {who} takes "
+                          f"{FUSION_KINDS.get(want, want)}: consensus={'|'.join(_kind_options(want))}")
 
 def check_target(target, key: str = "_target_") -> None:
     """ConfigError unless ``target`` is a registered study (:data:`TASK_TARGETS`)."""

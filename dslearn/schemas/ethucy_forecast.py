@@ -1,78 +1,33 @@
 """Schema of the ``ethucy_forecast`` task (``conf/task/ethucy_forecast.yaml``): ETH/UCY
 leave-one-scene-out forecasting. Keys and types are checked at composition, ranges by
-:func:`dslearn.schemas.base.check_ranges`, the rest by :func:`check`."""
+:func:`dslearn.schemas.base.check_ranges`, the rest by :func:`check`.
+
+The study's slots of its own (:func:`dslearn.compose.register_slot`): ``ethucy_forecast_datasets``, the
+composed data sets of ``task.datasets`` as :class:`dslearn.data.datasets.DatasetSpec` (by name), and
+``ethucy_forecast_curves_file``, where the learning curves go (:func:`curves_path`)."""
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from pathlib import Path
+from typing import Dict
 
 import torch
 from omegaconf import DictConfig
 
+from dslearn.compose import register_slot
 from dslearn.data.datasets import check_dataset
 from dslearn.errors import ConfigError, check_choice
-from dslearn.schemas.base import ranged, register_task
-from dslearn.schemas.datasets import DatasetSchema, FoldsSchema, check_scene_names
+from dslearn.schemas.base import register_task
+from dslearn.schemas.datasets import DatasetSchema, check_scene_names, spec_from_config
+from dslearn.studies.ethucy_forecast import ForecastSettings
 
-PREDICTORS = ("cv", "lstm", "social_lstm", "gp", "gp_state")
-CONVENTIONS = ("benchmark", "physical")
 DTYPES = ("float64", "float32")
 
 
 @dataclass
-class ForecastLSTM:
-    """``task.lstm``: network and schedule (see :func:`dslearn.models.lstm.schedule_from_config`)."""
+class EthucyForecastTask(ForecastSettings):
+    """The task's schema: the study's settings (:class:`dslearn.studies.ethucy_forecast.ForecastSettings`)
+    and the data sets the task composes (``conf/dataset/<name>.yaml``, typed by :class:`DatasetSchema`)."""
 
-    embed: int = ranged(64, ge=1)
-    hidden: int = ranged(64, ge=1)
-    schedule: str = ranged("early_stopping", choices=("fixed", "early_stopping"))
-    epochs: int = ranged(50, ge=1)
-    patience: Optional[int] = ranged(6, ge=1)
-    min_delta: float = ranged(0.0, ge=0.0, lt=1.0)
-    lr_factor: Optional[float] = ranged(0.5, gt=0.0, lt=1.0)
-    lr_patience: int = ranged(2, ge=1)
-    min_lr: float = ranged(0.0, ge=0.0)
-    batch_size: int = ranged(64, ge=1)
-    social_batch_size: Optional[int] = ranged(16, ge=1)
-    lr: float = ranged(1.0e-3, gt=0.0)
-    grid: int = ranged(4, ge=1)
-    neighbourhood: float = ranged(2.0, gt=0.0)
-    dtype: str = ranged("float32", choices=DTYPES)
-
-
-@dataclass
-class ForecastGP:
-    """``task.gp``: data budget and initial hyperparameters of both GP predictors."""
-
-    points: int = ranged(2000, ge=2)
-    fit_points: int = ranged(400, ge=2)
-    fit_iters: int = ranged(40, ge=0)
-    fit_lr: float = ranged(0.05, gt=0.0)
-    outputscale: float = ranged(1.0, gt=0.0)
-    lengthscale: float = ranged(1.0, gt=0.0)
-    noise_std: float = ranged(0.3, gt=0.0)
-
-
-@dataclass
-class EthucyForecastTask:
-    entry: str = "dslearn.studies.ethucy_forecast:run"
-    name: str = "ethucy_forecast"
-    data_root: Optional[str] = None
-    convention: str = ranged("benchmark", choices=CONVENTIONS)
-    scenes: List[str] = ranged(factory=lambda: ["eth", "hotel", "univ", "zara1", "zara2"], min_len=1)
-    train_scenes: Optional[List[str]] = ranged(None, min_len=1)
-    predictors: List[str] = ranged(factory=lambda: list(PREDICTORS), choices=PREDICTORS, each=True, min_len=1)
-    obs_len: int = ranged(8, ge=3)
-    pred_len: int = ranged(12, ge=1)
-    min_peds: int = ranged(2, ge=1)
-    test_stride: int = ranged(1, ge=1)
-    train_stride: int = ranged(3, ge=1)
-    max_test_windows: Optional[int] = ranged(None, ge=1)
-    max_train_windows: Optional[int] = ranged(None, ge=1)
-    quick: bool = False
-    curves_file: Optional[str] = "learning_curves.csv"
-    lstm: ForecastLSTM = field(default_factory=ForecastLSTM)
-    gp: ForecastGP = field(default_factory=ForecastGP)
-    folds: FoldsSchema = field(default_factory=FoldsSchema)
     datasets: Dict[str, DatasetSchema] = field(default_factory=dict)
 
 
@@ -122,4 +77,27 @@ INSTEAD = {
     "data": "its windows are task.obs_len + task.pred_len, at most task.max_train_windows / task.max_test_windows",
 }
 
+def task_specs(task) -> dict:
+    """The data sets of ``task.datasets`` (a config node) as specs, by name."""
+    return {str(k): spec_from_config(str(k), v) for k, v in (task.get("datasets") or {}).items()}
+
+
+def curves_path(name) -> Path | None:
+    """Where ``learning_curves.csv`` goes: an absolute ``task.curves_file`` as is, a relative
+    one inside the Hydra run directory (not written outside Hydra), ``null`` = nowhere."""
+    if name is None:
+        return None
+    p = Path(str(name))
+    if p.is_absolute():
+        return p
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return Path(HydraConfig.get().runtime.output_dir) / p
+    except Exception:  # not under Hydra (e.g. the Python API): the curves stay in the result's attrs
+        return None
+
+
 register_task("ethucy_forecast", EthucyForecastTask, check, uses=(), instead=INSTEAD)
+register_slot("ethucy_forecast_datasets", lambda cfg, slots: task_specs(cfg.task))
+register_slot("ethucy_forecast_curves_file", lambda cfg, slots: curves_path(cfg.task.get("curves_file")))

@@ -1,7 +1,7 @@
 r"""Schema of task ``jiang_fg`` (Jiang et al., ISITA 2022: factor-graph identification + EKF-FG).
 
-Keys and types are checked by Hydra at composition (``conf/task/jiang_fg.yaml`` is linked to
-:class:`JiangTask`), ranges and choices by the field rules; :func:`check` holds the rules that need
+The schema is the study's settings, :class:`dslearn.studies.jiang_fg.JiangTask`. Keys and types are
+checked by Hydra at composition (``conf/task/jiang_fg.yaml`` is linked to it), ranges and choices by the field rules; :func:`check` holds the rules that need
 several fields: every sensor / coefficient row / initial vector has M entries (M = the sensors'
 coordinate count), finite numbers in the nested lists, ``num_samples >= 2`` with
 ``fg.measurement_var=sample``, and every ablation's fields (the same rules as ``fg``/``tracker``).
@@ -11,85 +11,29 @@ out keeps the main grid's value. ``prior_var: null`` (no prior node) and ``gate:
 are overrides, not omissions. ``task.ablations`` stays an open mapping in the composed config, so
 ``'+task.ablations.mine={relinearize:true}'`` works on the command line (OmegaConf refuses a plain
 mapping for a ``Dict[str, Ablation]`` entry); :func:`ablation_values` then checks each entry's keys
-and types against :class:`Ablation` (in :func:`check`, before any work).
+and types against :class:`Ablation` (in :func:`check`, before any work), and the slot
+``jiang_fg_ablations`` (:func:`ablations`, registered with the composition root) hands the study
+each ablation's typed overrides.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from dataclasses import dataclass
+from typing import List, Optional
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from dslearn.compose import register_slot
 from dslearn.errors import ConfigError
-from dslearn.filters.ekf_fg import OBS_VAR_MODES
-from dslearn.learning.factor_graph.crlb import CRLB_FORMS
-from dslearn.learning.factor_graph.identification import GRAPHS, SCHEDULES
 from dslearn.schemas.base import check_ranges, ranged, register_task
-
-#: ``variant`` label of the main grid's rows (an ablation may not take it)
-MAIN_VARIANT = "default"
-
-_FG_RULES = dict(
-    init_guess_mode=dict(choices=("fixed", "prediction")), init_var=dict(gt=0.0), prior_var=dict(gt=0.0),
-    measurement_var=dict(choices=("sample", "known")), crlb_form=dict(choices=tuple(CRLB_FORMS)),
-    lambda_tol=dict(ge=0.0), converge_tol=dict(gt=0.0), schedule=dict(choices=tuple(SCHEDULES)),
-    damping=dict(ge=0.0, lt=1.0), graph=dict(choices=tuple(GRAPHS)), taylor_point=dict(choices=("prediction", "guess")),
-    initial_state_var=dict(gt=0.0), initial_gradient_var=dict(gt=0.0), process_var=dict(ge=0.0),
-    gradient_var=dict(ge=0.0), obs_var=dict(choices=tuple(OBS_VAR_MODES)), gate=dict(gt=0.0),
-    baseline_iters=dict(ge=1), max_iter=dict(ge=1),
-)
+from dslearn.studies.jiang_fg import MAIN_VARIANT, SETTING_RULES, JiangTask  # noqa: F401  (the settings are the schema)
 
 
 def _r(name: str, default=MISSING):
-    """A field with the rules of the FG / tracker setting ``name`` (shared by the main grid and the ablations)."""
-    return ranged(default, **_FG_RULES[name])
-
-
-@dataclass
-class Scenario:
-    sensors: List[Any] = ranged(factory=lambda: [[-30.0, 50.0], [10.0, 5.0], [60.0, 20.0]], min_len=1)
-    coefficients: List[Any] = ranged(factory=lambda: [[0.05, 0.03, 6.0], [-0.02, 0.07, 0.0]], min_len=1)
-    drive_var: float = ranged(0.5, ge=0.0)
-    num_timings: int = ranged(50, ge=1)
-    initial_state: List[float] = ranged(factory=lambda: [2.0, -2.0], min_len=1)
-
-
-@dataclass
-class FG:
-    init_guess: List[float] = ranged(factory=lambda: [0.0, 0.0], min_len=1)
-    init_guess_mode: str = _r("init_guess_mode", "fixed")
-    init_var: float = _r("init_var", 100.0)
-    prior_var: Optional[float] = _r("prior_var", None)
-    relinearize: bool = False
-    taylor_point: str = _r("taylor_point", "prediction")
-    schedule: str = _r("schedule", "flooding")
-    damping: float = _r("damping", 0.0)
-    graph: str = _r("graph", "scalar")
-    measurement_var: str = _r("measurement_var", "sample")
-    crlb_form: str = _r("crlb_form", "trace_inverse")
-    lambda_tol: float = _r("lambda_tol", 1e-8)
-    converge_tol: float = _r("converge_tol", 1e-3)
-
-
-@dataclass
-class Tracker:
-    initial_state_var: float = _r("initial_state_var", 10.0)
-    initial_gradient_var: float = _r("initial_gradient_var", 10.0)
-    process_var: float = _r("process_var", 1.0)
-    gradient_var: float = _r("gradient_var", 0.01)
-    obs_var: str = _r("obs_var", "crlb")
-    gate: Optional[float] = _r("gate", None)
-
-
-@dataclass
-class Figures:
-    fig2_iterations: List[int] = ranged(factory=lambda: list(range(1, 11)), ge=1, each=True, min_len=1)
-    fig3_episodes: int = ranged(3, ge=0)
-    fig5_sigma_y: List[float] = ranged(factory=lambda: [0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0], gt=0.0, each=True,
-                                       min_len=1)
+    """A field with the rules of the FG / tracker setting ``name`` (shared with the main grid's settings)."""
+    return ranged(default, **SETTING_RULES[name])
 
 
 @dataclass
@@ -119,22 +63,6 @@ class Ablation:
     max_iter: Optional[int] = _r("max_iter")
 
 
-@dataclass
-class JiangTask:
-    entry: str = "dslearn.studies.jiang_fg:run"
-    name: str = "jiang_fg"
-    mc_runs: int = ranged(100, ge=1)
-    scenario: Scenario = field(default_factory=Scenario)
-    num_samples: int = ranged(60, ge=1)
-    sigma_y: float = ranged(5.0, gt=0.0)
-    max_iter: int = ranged(10, ge=1)
-    fg: FG = field(default_factory=FG)
-    tracker: Tracker = field(default_factory=Tracker)
-    baseline_iters: int = ranged(3, ge=1)
-    figures: Figures = field(default_factory=Figures)
-    ablations: Dict[str, Any] = field(default_factory=dict)  # name -> Ablation (see ablation_values)
-
-
 def _vector(name: str, value, length: int | None) -> None:
     """``value`` a list of finite numbers (of ``length`` entries)."""
     ok = isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
@@ -155,7 +83,7 @@ def ablation_values(name: str, node) -> dict:
     except OmegaConfBaseException as e:
         key = getattr(e, "full_key", None) or "?"
         msg = str(e).splitlines()[0]
-        raise ConfigError(f"task.ablations.{name}.{key}: {msg} (allowed keys: {sorted([*_FG_RULES, 'init_guess', 'relinearize'])})") from None
+        raise ConfigError(f"task.ablations.{name}.{key}: {msg} (allowed keys: {sorted([*SETTING_RULES, 'init_guess', 'relinearize'])})") from None
     return {k: OmegaConf.to_container(typed[k]) if OmegaConf.is_config(typed[k]) else typed[k]
             for k in typed if not OmegaConf.is_missing(typed, k)}
 
@@ -202,4 +130,11 @@ INSTEAD = {
     "data": "its Monte Carlo runs are task.mc_runs",
 }
 
+def ablations(cfg: DictConfig, slots=None) -> dict[str, dict]:
+    """Slot ``jiang_fg_ablations``: each ablation's overrides (``task.ablations``, in order), typed by
+    :class:`Ablation` (:func:`ablation_values`)."""
+    return {str(name): ablation_values(str(name), node) for name, node in cfg.task.ablations.items()}
+
+
 register_task("jiang_fg", JiangTask, check, uses=(), instead=INSTEAD)
+register_slot("jiang_fg_ablations", ablations)

@@ -1,29 +1,153 @@
-"""Schema of ``task=matrix`` (one cell of the comparison matrix: a method on a scenario)."""
+"""Schema of ``task=matrix`` (one cell of the comparison matrix: a method on a scenario), and what decides
+whether a cell fits (:func:`cell`): the up-front check of one run refuses a cell that does not fit; the
+matrix sweep (``hydra/sweeper=matrix``, ``experiment=matrix``) drops it and records why (:func:`select_cells`,
+which the sweeper and ``dslearn-run``'s up-front check both apply)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
+import torch
 from omegaconf import DictConfig
 
+from dslearn.errors import ConfigError
 from dslearn.schemas.base import register_task
 from dslearn.studies.matrix import MatrixSettings
 
 
-def check(cfg: DictConfig) -> None:
-    """The method must fit the scenario: refused up front, before any job of a sweep, with the reason."""
-    from dslearn.compose import build_cell_parts
+@dataclass(frozen=True)
+class Cell:
+    """A composed matrix cell: its row (the method's label), its column (the scenario's name), the unit of
+    the scenario's positions, and ``reason`` = why the method does not fit the scenario (``None``: it fits)."""
 
-    build_cell_parts(cfg, check_only=True)
+    method: str
+    scenario: str
+    units: str
+    reason: str | None
+
+
+class _MetaSlots:
+    """The composition root's slots (:data:`dslearn.compose.SLOTS`) of one configuration, each built once,
+    on PyTorch's meta device (no memory, no numbers)."""
+
+    def __init__(self, cfg: DictConfig):
+        self.cfg, self._built = cfg, {"device": torch.device("meta")}
+
+    def __getitem__(self, name: str) -> Any:
+        from dslearn.compose import SLOTS
+
+        if name not in self._built:
+            self._built[name] = SLOTS[name](self.cfg, self)
+        return self._built[name]
+
+
+def cell(cfg: DictConfig) -> Cell:
+    """The cell of a ``task=matrix`` configuration: its method and scenario built as a run builds them (on the
+    meta device, without consuming a random draw of the run) and the method's verdict on the scenario's
+    declared spec (:meth:`dslearn.methods.base.Method.fits`). A configuration that cannot be built raises."""
+    slots = _MetaSlots(cfg)
+    spec = slots["scenario"].spec
+    with torch.random.fork_rng(devices=[]):
+        method = slots["method"]
+    return Cell(str(method.label), str(spec.name), str(spec.units), method.fits(spec))
+
+
+def _sentence(c: Cell) -> str | None:
+    return None if c.reason is None else f"{c.method} does not fit scenario {c.scenario}: {c.reason}"
+
+
+def misfit(cfg: DictConfig) -> str | None:
+    """Why the cell of ``cfg`` does not fit (one sentence naming the method, the scenario and what is missing),
+    ``None`` where it fits or ``cfg`` is not a matrix cell."""
+    if str(cfg.task.get("name")) != "matrix":
+        return None
+    return _sentence(cell(cfg))
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split()) or type(e).__name__
+
+
+def judge(cfg: DictConfig) -> dict:
+    """The record of one combination of a matrix sweep: ``method`` (label), ``scenario`` (name), ``units``,
+    ``reason`` (``None``: the cell fits and runs) and ``unbuilt`` (the method's parts could not be built for
+    this scenario: ``reason`` is the error, ``method`` empty). A scenario that cannot be built raises (a bad
+    configuration). A configuration of another task is a job whatever it is (empty labels)."""
+    if str(cfg.task.get("name")) != "matrix":
+        return {"method": "", "scenario": "", "units": "", "reason": None, "unbuilt": False}
+    slots = _MetaSlots(cfg)
+    spec = slots["scenario"].spec
+    try:
+        with torch.random.fork_rng(devices=[]):
+            method = slots["method"]
+    except Exception as e:  # noqa: BLE001 - a part that cannot be sized for this scenario (decided in select_cells)
+        return {"method": "", "scenario": str(spec.name), "units": str(spec.units), "unbuilt": True,
+                "reason": f"its parts cannot be built for scenario {spec.name}: {_one_line(e)}"}
+    c = Cell(str(method.label), str(spec.name), str(spec.units), method.fits(spec))
+    return {"method": c.method, "scenario": c.scenario, "units": c.units, "reason": _sentence(c), "unbuilt": False}
+
+
+def _method_key(combo) -> tuple[str, ...]:
+    """A combination's override lines less those of the scenario group: the same method on every scenario."""
+    def head(line: str) -> str:
+        return line.split("=", 1)[0].lstrip("+~").split("@")[0]
+
+    return tuple(line for line in combo if head(line) != "scenario" and not head(line).startswith("scenario."))
+
+
+def select_cells(combos, compose) -> tuple[list[list[str]], list[dict]]:
+    """The combinations of a sweep that become jobs (in order) and one record per combination: :func:`judge`'s,
+    plus ``job`` (its job number, ``None`` where it does not run) and ``overrides`` (its lines).
+
+    ``compose(lines)`` composes one combination. A combination whose method fits the scenario runs; one whose
+    method declares that it does not fit (:meth:`~dslearn.methods.base.Method.fits`) is dropped with that
+    reason. A method whose parts cannot be built for a scenario (e.g. the social force model with the
+    simulation's parameters, on a scenario that simulates no social forces) does not fit that scenario
+    either, provided it is built for another scenario of the sweep; a method built for no scenario of the
+    sweep is a configuration error (:class:`~dslearn.errors.ConfigError` with the first error), so a bad
+    value is never turned into "n/a" cells."""
+    records = []
+    for combo in combos:
+        rec = {**judge(compose(list(combo))), "overrides": " ".join(combo)}
+        records.append((list(combo), rec))
+    built = {}
+    for combo, rec in records:
+        if not rec.get("unbuilt"):
+            built.setdefault(_method_key(combo), rec["method"])
+    kept, out = [], []
+    for combo, rec in records:
+        if rec.pop("unbuilt", False):
+            label = built.get(_method_key(combo))
+            if label is None:
+                raise ConfigError(f"the method of {rec['overrides']} is built for no scenario of the sweep; on "
+                                  f"scenario {rec['scenario']}: {rec['reason'].split(': ', 1)[1]}")
+            rec["method"], rec["reason"] = label, f"{label} does not fit scenario {rec['scenario']}: {rec['reason']}"
+        rec["job"] = len(kept) if rec["reason"] is None else None
+        if rec["reason"] is None:
+            kept.append(combo)
+        out.append(rec)
+    return kept, out
+
+
+def check(cfg: DictConfig) -> None:
+    """The method must fit the scenario: refused up front, before any job of a sweep, with the reason (a
+    sweep with the matrix sweeper drops such a cell before it gets here)."""
+    reason = misfit(cfg)
+    if reason is not None:
+        raise ConfigError(reason)
 
 
 def uses(cfg: DictConfig) -> tuple[str, ...]:
-    """The root groups a cell reads: the scenario; the network part only for a scenario without sensors of its
-    own; the filter (the method's engine) and the parts that engine takes (:func:`dslearn.compose.method_takes`)."""
+    """The root groups a cell reads: the method preset and the scenario; the network part only for a scenario
+    without sensors of its own; the filter (the method's engine) and the parts that engine takes
+    (:func:`dslearn.compose.method_takes`)."""
     from hydra.utils import get_object
 
     from dslearn.compose import method_takes
 
     own = getattr(get_object(str(cfg.scenario._target_)), "owns_network", False)
-    return ("scenario", "filter", *method_takes(cfg), *(() if own else ("network",)))
+    return ("method", "scenario", "filter", *method_takes(cfg), *(() if own else ("network",)))
 
 
 register_task("matrix", MatrixSettings, check, uses=uses,

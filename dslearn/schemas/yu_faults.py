@@ -1,38 +1,15 @@
-"""Schema of ``task=yu_faults`` (the Yu scenario on an unreliable network)."""
+"""Schema of ``task=yu_faults`` (the Yu scenario on an unreliable network): the study's settings
+(:class:`dslearn.studies.yu_faults.FaultTask`), its cross-field check, and the slots of the grid that
+the composition root fills from the config groups (``yu_faults_fusions``, ``yu_faults_model_labels``)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, List, Optional
-
 from omegaconf import DictConfig
 
+from dslearn.compose import build_fusion, group_options, register_slot
 from dslearn.errors import ConfigError
-from dslearn.schemas.base import ranged, register_task
-
-FUSION_OPTIONS = ("individual", "ce", "cm", "ci", "hybrid", "hybrid_nodes", "centralized")
-
-
-@dataclass
-class FaultTask:
-    entry: str = "dslearn.studies.yu_faults:run"
-    name: str = "yu_faults"
-    models: List[str] = ranged(factory=lambda: ["lin", "gp_increment"], min_len=1)  # conf/model/<name>.yaml
-    fusions: List[str] = ranged(factory=lambda: ["individual", "ce", "cm", "ci", "hybrid", "centralized"],
-                                min_len=1, each=True, choices=FUSION_OPTIONS)
-    train_episodes: int = ranged(15, ge=0)
-    test_episodes: int = ranged(20, ge=1)
-    link_fail: List[float] = ranged(factory=lambda: [0.0, 0.1, 0.3, 0.5], each=True, ge=0.0, le=1.0)
-    node_fail: List[float] = ranged(factory=lambda: [0.0, 0.1, 0.2, 0.4], each=True, ge=0.0, le=1.0)
-    joint: List[Any] = ranged(factory=lambda: [[0.3, 0.2]])
-    node_fail_mode: str = ranged("permanent", choices=("permanent", "transient"))
-    node_fail_duration: int = ranged(4, ge=1)
-    weights: str = ranged("metropolis", choices=("metropolis", "uniform"))
-    outlier_frac: float = ranged(0.1, ge=0.0, le=1.0)
-    outlier_std: float = ranged(3.0, gt=0.0)
-    gate_prob: Optional[float] = ranged(0.99, gt=0.0, lt=1.0)
-    outlier_settings: bool = True
-    divergence_bound: float = ranged(2.0, gt=0.0)
+from dslearn.schemas.base import register_task
+from dslearn.studies.yu_faults import FaultGridFusions, FaultTask
 
 
 def check(cfg: DictConfig) -> None:
@@ -53,6 +30,39 @@ def check(cfg: DictConfig) -> None:
                           "takes omega from its own option (conf/consensus/<name>.yaml); list hybrid_nodes "
                           "(omega = number of nodes) in task.fusions instead")
 
+
+def grid_fusion_nodes(cfg: DictConfig) -> dict[str, DictConfig]:
+    """The config node of every fusion of ``task.fusions``, composed from its own ``consensus`` option.
+
+    Each keeps its own ``omega`` (``hybrid``: 1, ``hybrid_nodes``: S) and type; only the number of
+    rounds ``L`` is the grid's, ``consensus.iterations``. The weight rule of the option is not used:
+    :class:`~dslearn.fusion.faults.FaultyFusion` recomputes the weights on every step's live graph
+    (``task.weights``). A root ``consensus.omega`` other than ``one`` would apply to no fusion:
+    :func:`check` refuses it; the grid lists the omega variants as options
+    (``task.fusions=[hybrid,hybrid_nodes]``).
+    """
+    same = (f"consensus.iterations={int(cfg.consensus.iterations)}", "consensus.weights=uniform")
+    return group_options("consensus", list(cfg.task.fusions), same)
+
+
+def _grid_fusions(cfg: DictConfig, slots) -> FaultGridFusions:
+    """Slot ``yu_faults_fusions``: a maker per fusion of ``task.fusions`` (:func:`grid_fusion_nodes`)."""
+    nodes = grid_fusion_nodes(cfg)
+
+    def maker(node):
+        return lambda network: build_fusion(node, network)
+
+    return FaultGridFusions(rounds=int(cfg.consensus.iterations), make={n: maker(node) for n, node in nodes.items()})
+
+
+def _model_labels(cfg: DictConfig, slots) -> dict[str, str]:
+    """Slot ``yu_faults_model_labels``: the rows' label of every option of ``task.models`` (its ``name``:
+    ``gp_cv`` is ``gp_increment_cv``, ``gp_rbcm`` ``gp_<aggregation>``)."""
+    return {n: str(node.name) for n, node in group_options("model", [str(m) for m in cfg.task.models]).items()}
+
+
+register_slot("yu_faults_fusions", _grid_fusions)
+register_slot("yu_faults_model_labels", _model_labels)
 
 #: the root groups the study reads (:mod:`dslearn.studies.yu_faults`): the scenario, the network, the
 #: observation model and the filter as the Yu study; of ``consensus`` only the number of rounds

@@ -25,6 +25,7 @@ from dslearn.data.episodes import extract_episodes, split_episodes
 from dslearn.episodes import Episodes
 from dslearn.errors import ConfigError, check_positive
 from dslearn.network import SensorNetwork
+from dslearn.settings import ranged
 from dslearn.sim.placement import make_network
 from dslearn.sim.scenario import episode_streams, measure
 from dslearn.types import StepContext
@@ -94,6 +95,43 @@ def arena_network(
         raise ConfigError(msg + "; raise task.network.k_nearest" if "disconnected" in msg else msg) from None
 
 
+@dataclass
+class ArenaSettings:
+    """The LiDAR-like network placed around a real scene (:func:`arena_network`'s settings; the
+    real-data tracking study's ``task.network``)."""
+
+    num_sensors: int = ranged(4, ge=1)
+    k_nearest: int = ranged(2, ge=1)
+    sensing_range: float = ranged(8.0, gt=0.0)
+    meas_std: float = ranged(0.2, gt=0.0)
+    margin: float = ranged(0.0, ge=0.0)
+
+    def network(self, extent: Sequence[float]) -> SensorNetwork:
+        """The network of these settings around ``extent`` (:func:`arena_network`)."""
+        return arena_network(extent, int(self.num_sensors), int(self.k_nearest), float(self.sensing_range),
+                             float(self.meas_std), float(self.margin))
+
+
+@dataclass(frozen=True)
+class EpisodeRecipe:
+    """How a real scene is cut into episodes and split (:func:`real_source`): ``agents`` interacting
+    pedestrians per episode over ``steps`` steps of ``dt`` seconds
+    (:func:`dslearn.data.episodes.extract_episodes` with ``max_dist stride criterion min_speed``), split
+    by ``split`` / ``test_fraction`` (:func:`dslearn.data.episodes.split_episodes`), at most
+    ``test_episodes`` test episodes."""
+
+    agents: int
+    steps: int
+    dt: float
+    max_dist: float
+    stride: int
+    criterion: str
+    min_speed: float
+    split: str
+    test_fraction: float
+    test_episodes: int
+
+
 @dataclass(frozen=True)
 class RealScenario:
     """What a model option's factory (``_partial_``, :mod:`dslearn.compose`) needs of a data source
@@ -143,40 +181,35 @@ def episodes_to(ep: Episodes, dtype, device) -> Episodes:
     return Episodes(ep.states.to(device, dtype), ep.meas.to(device, dtype), ep.visible.to(device))
 
 
-def real_source(scene, t, seed: int, max_train: int, dtype, device) -> Data:
-    """Episodes of ``m = t.agents`` interacting pedestrians of ``scene`` (a
+def real_source(scene, recipe: EpisodeRecipe, arena: ArenaSettings, seed: int, max_train: int, dtype,
+                device) -> Data:
+    """Episodes of ``recipe.agents`` interacting pedestrians of ``scene`` (a
     :class:`dslearn.data.ethucy.Scene`; :func:`dslearn.data.episodes.extract_episodes` with the
-    task's ``steps dt max_dist stride criterion min_speed``), split by ``t.split`` (at most
-    ``max_train`` training and ``t.test_episodes`` test episodes, seeded), the network of
-    ``t.network`` around the scene's extent and every episode's measurements (one noise stream
+    recipe's ``steps dt max_dist stride criterion min_speed``), split by ``recipe.split`` (at most
+    ``max_train`` training and ``recipe.test_episodes`` test episodes, seeded), the network of
+    ``arena`` around the scene's extent and every episode's measurements (one noise stream
     per episode)."""
+    r = recipe
     scene_name = scene.name
     eps = extract_episodes(
-        scene, int(t.agents), int(t.steps), float(t.dt), float(t.max_dist), int(t.stride), str(t.criterion), float(t.min_speed)
+        scene, int(r.agents), int(r.steps), float(r.dt), float(r.max_dist), int(r.stride), str(r.criterion), float(r.min_speed)
     )
-    train_idx, test_idx = split_episodes(eps, str(t.split), float(t.test_fraction), None, seed)
-    n_tr, n_te = min(max_train, len(train_idx)), min(int(t.test_episodes), len(test_idx))
+    train_idx, test_idx = split_episodes(eps, str(r.split), float(r.test_fraction), None, seed)
+    n_tr, n_te = min(max_train, len(train_idx)), min(int(r.test_episodes), len(test_idx))
     if n_tr < 1 or n_te < 1:
         raise ConfigError(
             f"task.scenes: scene {scene_name!r} gives {len(train_idx)} training and {len(test_idx)} test episodes "
             f"with these settings; lower task.max_dist/task.min_speed/task.stride or choose another scene"
         )
-    if n_tr < max_train or n_te < int(t.test_episodes):
+    if n_tr < max_train or n_te < int(r.test_episodes):
         warnings.warn(
             f"scene {scene_name}: only {len(train_idx)} training / {len(test_idx)} test episodes available "
-            f"(asked {max_train} / {int(t.test_episodes)}); using {n_tr} / {n_te}"
+            f"(asked {max_train} / {int(r.test_episodes)}); using {n_tr} / {n_te}"
         )
     rng = np.random.default_rng(seed + 17)
     test_sel = np.sort(rng.choice(test_idx, size=n_te, replace=False)) if n_te < len(test_idx) else test_idx
     tr, te = eps.select(train_idx[:n_tr]), eps.select(test_sel)
-    net = arena_network(
-        scene_extent(torch.tensor(scene.df[["x", "y"]].to_numpy())),
-        int(t.network.num_sensors),
-        int(t.network.k_nearest),
-        float(t.network.sensing_range),
-        float(t.network.meas_std),
-        float(t.network.margin),
-    )
+    net = arena.network(scene_extent(torch.tensor(scene.df[["x", "y"]].to_numpy())))
     # one measurement-noise stream per episode: an episode's measurements do not depend on how
     # many episodes are drawn
     test = measure(te.states, net, episode_streams(int(seed), "test", 0, len(te.states)))
@@ -192,5 +225,5 @@ def real_source(scene, t, seed: int, max_train: int, dtype, device) -> Data:
     }
     return Data(
         scene_name, "real", episodes_to(train, dtype, device), episodes_to(test, dtype, device), net,
-        StepContext(dt=float(t.dt)), ext, int(t.agents), info,
+        StepContext(dt=float(r.dt)), ext, int(r.agents), info,
     )

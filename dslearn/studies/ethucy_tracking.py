@@ -1,25 +1,24 @@
 r"""Study ``ethucy_tracking``: Yu et al. Section VI (robot study) on real pedestrians (ETH/UCY).
 
-Two protocols (``task.protocol``):
+Two protocols (``settings.protocol``, the task's ``protocol`` key):
 
 ``tables`` (``dslearn-run experiment=real_tables``) — Tables III–IV and Fig. 4 analogue. Per
-scene (``task.scenes``): episodes of ``m`` interacting pedestrians (:mod:`dslearn.data.episodes`,
-physical time; a scene is a data set of ``task.datasets``, ``conf/dataset/<name>.yaml``), a time
-split inside the scene, a LiDAR-like network around the scene
-(:mod:`dslearn.sim.real`), then
+scene (``settings.scenes``): episodes of ``m`` interacting pedestrians (:mod:`dslearn.data.episodes`,
+physical time; a scene is one of the run's data sets, ``conf/dataset/<name>.yaml``), a time split
+inside the scene, a LiDAR-like network around the scene (:mod:`dslearn.sim.real`), then
 
-* for every motion model of ``task.models`` (``conf/model`` options, composed as the faults
-  study's; ``gp`` = the root ``model`` group): tracking error of the distributed filter
-  (``cfg.consensus``, hybrid by default; the root ``filter`` group's prediction step, EKF or
-  ``filter=ukf``; the root ``observation`` group's sensor model, ``observation=gp`` learned
-  online too) and prediction error (roll-out from the true state at t = 0, the paper's V-C
-  protocol);
+* for every motion model of the task's ``models`` (each entry a :class:`ModelEntry`, made by the
+  composition root from a ``conf/model`` option; ``gp`` = the root ``model`` group): tracking error
+  of the distributed filter (the run's fusion, hybrid by default; the run's prediction step, EKF or
+  ``filter=ukf``; the run's sensor model, ``observation=gp`` learned online too) and prediction
+  error (roll-out from the true state at t = 0, the paper's V-C protocol);
 * predicted trajectories of a few test episodes (rows ``pred_x``/``pred_y``) for the figure.
 
 ``data_size`` (``dslearn-run experiment=gp_vs_lstm``) — Fig. 5 analogue: the same rows after
-``n`` training episodes for ``n`` in ``task.data_sizes`` (online models learn through the consensus
-filter up to ``n``; offline models are fitted on the first ``n``), ``task.seeds`` seeds, on the real
-scenes and on the synthetic Yu scenario (``cfg.scenario`` / ``cfg.network``).
+``n`` training episodes for ``n`` in ``settings.data_sizes`` (online models learn through the
+consensus filter up to ``n``; offline models are fitted on the first ``n``), ``settings.seeds``
+seeds, on the real scenes and on the synthetic Yu scenario (the run's root scenario and network,
+:class:`SyntheticWorld`).
 
 A model learns online (``model.learnable``: the GPs, Algorithm 1 on the training episodes) or
 offline (``model.learns_offline``: :meth:`~dslearn.models.base.MotionModel.fit_offline` once on
@@ -27,203 +26,351 @@ the training episodes' trajectories, before tracking): the SFM of real data (``s
 model is unknown; its shared :math:`(\tau, \alpha, \beta)` are fitted to the training
 roll-outs, :mod:`dslearn.learning.sfm_fit`) and the LSTM (``lstm``, ``social_lstm``:
 :class:`~dslearn.models.lstm.SocialLSTM`). What an offline model learns from is its
-``train_on`` key, else ``task.train_on``: ``truth`` (the true tracks) or ``fused`` (default: the
+``train_on`` key, else ``settings.train_on``: ``truth`` (the true tracks) or ``fused`` (default: the
 positions the network estimates when it tracks the training episodes with LIN and consensus on
-measurements (CM), the nodes' estimates combined by their information, :func:`cm_fused` — the
-paper's VI-C recipe). The study never decodes a model's name.
+measurements (CM), the nodes' estimates combined by their information, :meth:`EthucyTrackingStudy.cm_fused`
+— the paper's VI-C recipe). The study never decodes a model's name.
+
+Python use (the same defaults and checks as ``dslearn-run``, :mod:`dslearn.api`)::
+
+    from dslearn import api
+    study = api.build_study("experiment=real_tables", "task.scenes=[zara1]", "task.train_episodes=8")
+    df = study.run()
 """
 
-from __future__ import annotations
-
-import copy
 import logging
 import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
 import pandas as pd
 import torch
-from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
-from dslearn.compose import (build_fusion, build_motion_model, build_network, build_observation, build_predict,
-                             build_scenario, group_options, resolve_dtype)
-from dslearn.data.datasets import load_dataset, task_datasets
+from dslearn.data.datasets import DatasetSpec, load_dataset
+from dslearn.diagnostics import Diagnostics
 from dslearn.episodes import Episodes, Measurements
-from dslearn.filters.distributed import initial_belief, track
-from dslearn.fusion.strategies import ConsensusOnMeasurements, Fusion
+from dslearn.filters.distributed import FilterSettings, initial_belief, track
+from dslearn.fusion.strategies import Fusion
 from dslearn.learning.online import OnlineLearner
-from dslearn.metrics import metric_rows, prediction_error, tracking_metrics
+from dslearn.metrics.prediction import position_rows, scalar_row, tracking_and_prediction_errors
+from dslearn.metrics.rows import metric_rows
 from dslearn.models import ConstantVelocity, LinearPositionObservation
-from dslearn.models.base import MotionModel
+from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.network import SensorNetwork
-from dslearn.sim.real import Data, real_source
+from dslearn.settings import ranged
+from dslearn.sim.real import ArenaSettings, Data, EpisodeRecipe, real_source
 from dslearn.sim.scenario import sample_split
-from dslearn.types import POS, agents, safe_cholesky
+from dslearn.types import safe_cholesky
 
 log = logging.getLogger(__name__)
 
 TASK = "ethucy_tracking"
-#: names of ``task.models`` kept from before the entries were ``conf/model`` options: entry ->
-#: (the option, the label of its rows); option None = the root ``model`` group, labelled by its name
-ALIASES = {"gp": (None, None), "sfm": ("sfm_fit", "sfm")}
-GP_TARGET = "dslearn.models.gp.GPMotionModel.for_scenario"
-GP_CV_TARGET = "dslearn.learning.gp_cv.gp_cv_for_scenario"
-AGGREGATED_TARGET = "dslearn.models.aggregated.aggregated_for_scenario"
-#: the model factories that run on real data (sized by :class:`dslearn.sim.real.RealScenario`), and
-#: the GPs among them whose ``inputs`` ``task.gp_inputs`` sets
-REAL_TARGETS = (GP_TARGET, GP_CV_TARGET, AGGREGATED_TARGET, "dslearn.models.constant_velocity.ConstantVelocity.for_scenario",
-                "dslearn.learning.sfm_fit.FittedSocialForce.for_scenario", "dslearn.models.lstm.SocialLSTM.for_scenario")
-GP_INPUT_TARGETS = (GP_TARGET, GP_CV_TARGET)
-#: the observation group's default noise: the root network's sensors (here: the study's own network)
-NETWORK_NOISE = "${network.meas_std}"
+PROTOCOLS = ("tables", "data_size")
+#: the default entries of ``models``: conf/model options (gp = the root model group)
+MODELS = ("gp", "gp_cv", "lin", "sfm_fit", "lstm")
+CRITERIA = ("mutual", "closest")
+SPLITS = ("time", "scene", "random")  # as dslearn.data.episodes; "scene" is refused with the reason by the task's check
+TRAIN_ON = ("fused", "truth")  # what offline models learn from (OfflineData)
+GP_INPUTS = ("belief", "mean")  # dslearn.models.gp.INPUTS: where the EKF evaluates the GPs
 
 
-# data --------------------------------------------------------------------------------------
-def real_data(cfg: DictConfig, scene_name: str, seed: int, max_train: int, dtype, device) -> Data:
-    """Episodes of one scene (a data set of ``task.datasets``), its network and measurements (all
-    seeded by ``seed``; :func:`dslearn.sim.real.real_source`)."""
-    t = cfg.task
-    scene = load_dataset(task_datasets(t)[scene_name], t.get("data_root"), str(t.convention))
-    return real_source(scene, t, seed, max_train, dtype, device)
+# settings ----------------------------------------------------------------------------------
+@dataclass
+class CmFusionSettings:
+    """``cm_fusion``: the filter that makes the fused training tracks (:meth:`EthucyTrackingStudy.cm_fused`)."""
+
+    noise_std: float = ranged(0.1, gt=0.0)
 
 
-def synthetic_data(cfg: DictConfig, seed: int, max_train: int, dtype, device) -> Data:
-    """The Yu synthetic scenario and network (``cfg.scenario``, ``cfg.network``)."""
-    scenario, net = build_scenario(cfg), build_network(cfg)
-    test, train = sample_split(scenario, net, seed, int(cfg.task.test_episodes), max_train, dtype, device)
-    info = {"episodes_total": max_train + int(cfg.task.test_episodes), "scene_dt": scenario.dt, "test_meta": None}
-    return Data("synthetic", "synthetic", train, test, net, scenario.ctx(), tuple(scenario.area), scenario.num_agents, info)
+@dataclass
+class EthucyTrackingSettings:
+    """The study's own settings (the task's keys; the data sets it may use arrive as
+    :class:`~dslearn.data.datasets.DatasetSpec` values, the models as :class:`ModelEntry` makers)."""
+
+    protocol: str = ranged("tables", choices=PROTOCOLS)
+    data_root: Optional[str] = None
+    scenes: List[str] = field(default_factory=lambda: ["zara1", "zara2", "univ", "hotel", "eth"])
+    convention: str = ranged("physical", choices=("physical", "benchmark"))
+    dt: float = ranged(0.4, gt=0.0)
+    steps: int = ranged(11, ge=2)
+    agents: int = ranged(2, ge=2)
+    max_dist: float = ranged(3.0, gt=0.0)
+    criterion: str = ranged("mutual", choices=CRITERIA)
+    min_speed: float = ranged(0.3, ge=0.0)
+    stride: int = ranged(4, ge=1)
+    split: str = ranged("time", choices=SPLITS)
+    test_fraction: float = ranged(0.2, gt=0.0, lt=1.0)
+    train_episodes: int = ranged(128, ge=1)
+    test_episodes: int = ranged(25, ge=1)
+    plot_episodes: int = ranged(3, ge=0)
+    models: List[str] = ranged(factory=lambda: list(MODELS), min_len=1)  # conf/model/<name>.yaml (checked by the task)
+    model_keys: Dict[str, Dict[str, Any]] = field(default_factory=dict)  # entry -> keys of its option to replace
+    train_on: str = ranged("fused", choices=TRAIN_ON)
+    gp_inputs: str = ranged("belief", choices=GP_INPUTS)
+    network: ArenaSettings = field(default_factory=ArenaSettings)
+    cm_fusion: CmFusionSettings = field(default_factory=CmFusionSettings)
+    data_sizes: List[int] = ranged(factory=lambda: [8, 16, 32, 64, 128], ge=1, each=True)
+    seeds: int = ranged(3, ge=1)
+    synthetic: bool = False
+
+    def episode_recipe(self) -> EpisodeRecipe:
+        """How a scene is cut into episodes and split (:func:`dslearn.sim.real.real_source`)."""
+        return EpisodeRecipe(int(self.agents), int(self.steps), float(self.dt), float(self.max_dist), int(self.stride),
+                             str(self.criterion), float(self.min_speed), str(self.split), float(self.test_fraction),
+                             int(self.test_episodes))
 
 
-# models and evaluation ---------------------------------------------------------------------
-def _fusion(cfg: DictConfig, net: SensorNetwork) -> Fusion:
-    return build_fusion(cfg.consensus, net)
+@dataclass(frozen=True)
+class ModelEntry:
+    """One entry of the task's ``models``: its name, the label of its rows (the ``model`` column) and
+    ``make(scenario, network, device=None)``, a fresh model sized by a data source's scenario
+    (:attr:`dslearn.sim.real.Data.scenario`) and network, in the run's dtype (and device unless given)."""
+
+    entry: str
+    label: str
+    make: Callable[..., MotionModel]
 
 
-def model_entries(cfg: DictConfig) -> list[tuple[str, str, dict]]:
-    """``(entry, label, spec)`` of every ``task.models`` entry, in order: ``spec`` is the plain config
-    of its ``conf/model`` option (composed by :func:`dslearn.compose.group_options`; the legacy
-    names of :data:`ALIASES` map to an option or to the root ``model`` group), with the keys of
-    ``task.model_keys.<entry>`` replaced and, for the GPs that have it, ``inputs = task.gp_inputs``;
-    ``label`` (the rows' ``model``) is the option's ``name`` (an alias's own label where it has one)."""
-    t = cfg.task
-    names = [str(m) for m in t.models]
-    options = sorted({ALIASES.get(n, (n, None))[0] for n in names} - {None})
-    composed = _options(options)
-    extra = t.get("model_keys") or {}
-    out = []
-    for n in names:
-        option, label = ALIASES.get(n, (n, None))
-        spec = OmegaConf.to_container(cfg.model, resolve=True) if option is None else copy.deepcopy(composed[option])
-        if n in extra:
-            spec.update(OmegaConf.to_container(extra[n], resolve=True) if OmegaConf.is_config(extra[n]) else dict(extra[n]))
-        if str(t.get("gp_inputs", "mean")) != "mean" and spec.get("_target_") in GP_INPUT_TARGETS:
-            spec["inputs"] = str(t.gp_inputs)
-        out.append((n, str(label or spec.get("name", n)), spec))
-    return out
+@dataclass(frozen=True)
+class SyntheticWorld:
+    """The synthetic Yu source of the ``data_size`` protocol: the run's scenario and sensor network."""
+
+    scenario: Any
+    network: SensorNetwork
 
 
-_OPTIONS: dict[tuple, dict] = {}
+# the study ---------------------------------------------------------------------------------
+@dataclass
+class EthucyTrackingStudy:
+    """One run of the real-data study (one protocol over the sources of its settings).
+
+    Its slots are filled by the composition root: the typed settings, the run's seed, dtype and device,
+    the filter's settings and prediction step, the fusion of a network (``fusion_factory``), and the
+    task's own slots: the model entries (``ethucy_tracking_models``), a sensor model for a network
+    (``ethucy_tracking_observation``: its noise, unless set, is that network's sensors'), the CM fusion
+    of the fused training tracks (``ethucy_tracking_cm_fusion``), the data sets (``ethucy_tracking_datasets``)
+    and, for the synthetic source only, the root scenario and network (``ethucy_tracking_synthetic``)."""
+
+    settings: EthucyTrackingSettings
+    seed: int
+    dtype: torch.dtype
+    device: torch.device
+    filter: FilterSettings
+    predict: Any
+    fusion_factory: Callable[[SensorNetwork], Fusion]
+    ethucy_tracking_models: List[ModelEntry]
+    ethucy_tracking_observation: Callable[[SensorNetwork], ObservationModel]
+    ethucy_tracking_cm_fusion: Callable[[SensorNetwork], Fusion]
+    ethucy_tracking_datasets: Dict[str, DatasetSpec]
+    ethucy_tracking_synthetic: Optional[SyntheticWorld] = None
+
+    # data ----------------------------------------------------------------------------------
+    def real_data(self, scene_name: str, seed: int, max_train: int) -> Data:
+        """Episodes of one scene (a data set of the run), its network and measurements (all seeded by
+        ``seed``; :func:`dslearn.sim.real.real_source`)."""
+        s = self.settings
+        scene = load_dataset(self.ethucy_tracking_datasets[scene_name], s.data_root, str(s.convention))
+        return real_source(scene, s.episode_recipe(), s.network, seed, max_train, self.dtype, self.device)
+
+    def synthetic_data(self, seed: int, max_train: int) -> Data:
+        """The Yu synthetic scenario and network (:class:`SyntheticWorld`)."""
+        world = self.ethucy_tracking_synthetic
+        if world is None:
+            raise ValueError("the synthetic source needs the run's scenario and network (ethucy_tracking_synthetic)")
+        scenario, net = world.scenario, world.network
+        n_test = int(self.settings.test_episodes)
+        test, train = sample_split(scenario, net, seed, n_test, max_train, self.dtype, self.device)
+        info = {"episodes_total": max_train + n_test, "scene_dt": scenario.dt, "test_meta": None}
+        return Data("synthetic", "synthetic", train, test, net, scenario.ctx(), tuple(scenario.area), scenario.num_agents,
+                    info)
+
+    # parts ---------------------------------------------------------------------------------
+    def fusion(self, network: SensorNetwork) -> Fusion:
+        """The run's fusion over ``network``'s graph."""
+        return self.fusion_factory(network)
+
+    def initial_belief(self, data: Data, ep: Measurements, fusion: Fusion):
+        f = self.filter
+        return initial_belief(ep, data.network, data.ctx.dt, fusion, data.area, f.prior_pos_std, f.prior_vel_std)
+
+    def learner(self, model: MotionModel, data: Data, fusion: Fusion) -> OnlineLearner:
+        """Algorithm 1 (:class:`~dslearn.learning.online.OnlineLearner`) for ``model`` on ``data``'s network, with
+        the run's prediction step (EKF, or ``filter=ukf``) and a fresh sensor model for that network
+        (``observation=gp`` learns online too)."""
+        return OnlineLearner(data.network, model, self.ethucy_tracking_observation(data.network), fusion, data.ctx,
+                             init=lambda ep: self.initial_belief(data, ep, fusion), predict_step=self.predict,
+                             learn_gate_std=self.filter.learn_gate_std)
+
+    def offline_source(self, model: MotionModel) -> str:
+        """What an offline model learns from: its ``train_on``, else the settings' ``train_on``."""
+        return str(model.train_on or self.settings.train_on)
+
+    @torch.no_grad()
+    def cm_fused(self, data: Data, ep: Episodes) -> Tensor:
+        r"""Track ``ep`` with LIN and consensus on measurements (CM); the nodes' estimates combined
+        by their information, :math:`\hat y = (\sum_i \Omega_i)^{-1} \sum_i \Omega_i \hat y_i`,
+        ``(B, K+1, Dx)``.
+
+        The initial belief is fused by CM like every later step, and a node that learns nothing
+        about a target holds the diffuse prior (near-zero information): the information weighting
+        gives such a node almost no weight, where a plain node average would drag the estimate
+        towards the prior's mean. After consensus the nodes agree closely, and the combination is
+        close to their average.
+        """
+        net = data.network
+        fusion = self.ethucy_tracking_cm_fusion(net)
+        lin = ConstantVelocity(data.num_agents, float(self.settings.cm_fusion.noise_std))
+        obs = LinearPositionObservation(net.meas_std)
+        res = track(ep.measurements, net, lin, obs, fusion, data.ctx, self.initial_belief(data, ep.measurements, fusion))
+        info = res.info.sum(0)
+        q = (res.info @ res.mean.unsqueeze(-1)).sum(0)
+        return torch.cholesky_solve(q, safe_cholesky(info)).squeeze(-1)
+
+    def evaluate(self, alg: OnlineLearner, data: Data, per_node: bool) -> dict[str, Tensor]:
+        """The filter's estimates of the test episodes and the model's roll-outs, against the truth
+        (Table II/IV protocol, :func:`dslearn.metrics.prediction.tracking_and_prediction_errors`)."""
+        res = alg.estimate(data.test.measurements)
+        return tracking_and_prediction_errors(res, alg.model, data.test.states, data.network.num_nodes, data.ctx,
+                                              per_node)
+
+    # protocols -----------------------------------------------------------------------------
+    def protocol_tables(self, data: Data, seed: int) -> pd.DataFrame:
+        """Tables III–IV and Fig. 4 rows for one data source: every model entry tracks the
+        test episodes (after its online or offline learning on the ``n`` training episodes) and rolls
+        them out from the truth; an offline model's fit adds its ``fit_info`` as parameter rows
+        (``<label>_<key>``, e.g. ``sfm_tau``, ``lstm_train_loss``)."""
+        n_train = len(data.train)
+        fusion = self.fusion(data.network)
+        net = data.network
+        base = dict(data=data.kind, scene=data.label, train_episodes=n_train, test_episodes=len(data.test), seed=seed)
+        frames, times = [], {}
+        n_plot = min(int(self.settings.plot_episodes), len(data.test))
+        offline = OfflineData(data, self.cm_fused, self.offline_source, times)
+
+        def add(model_name, cons, df):
+            for i, (k, v) in enumerate({"model": model_name, "consensus": cons}.items()):
+                df.insert(i, k, v)
+            frames.append(df)
+
+        cover = {"visible_frac": data.info.get("visible_frac", float("nan")), "train_pool": data.info.get("train_pool", float("nan"))}
+        for k, v in cover.items():  # fraction of (test episode, step, pedestrian) seen by >= 1 sensor; episodes available
+            add("-", "-", scalar_row(k, float(v), **base))
+        if n_plot:
+            add("truth", "-", position_rows(data.test.states, net.names[0], n_plot, **base))
+        for entry in self.ethucy_tracking_models:
+            label = entry.label
+            t0 = time.perf_counter()
+            model = entry.make(data.scenario, data.network)
+            fit_offline(model, offline, n_train, seed)
+            for k, v in getattr(model, "fit_info", {}).items():
+                add(label, "-", scalar_row(f"{label}_{k}", float(v), **base))
+            model.begin_episodes(data.test.states)
+            alg = self.learner(model, data, fusion)
+            if alg.learnable:
+                train_online(alg, data, n_train)
+            add(label, fusion.name, metric_rows(self.evaluate(alg, data, model.learnable), net, **base))
+            roll = rollout_from_truth(model, data, model.learnable) if n_plot > 0 else None  # the figure's trajectories
+            add(label, fusion.name, position_rows(roll, net.names[0], n_plot, **base))
+            times[label] = time.perf_counter() - t0
+        log.info("%s: component times %s", data.label, {k: round(v, 1) for k, v in times.items()})
+        df = pd.concat(frames, ignore_index=True)
+        df.attrs["times"] = times
+        return df
+
+    def protocol_data_size(self, data: Data, seed: int) -> pd.DataFrame:
+        """Fig. 5 rows for one data source and seed: every model entry after ``n`` training
+        episodes, ``n`` in ``settings.data_sizes`` (online models learn on, episode after episode; offline
+        models are fitted again on the first ``n``, with seed ``seed * 7919 + n``)."""
+        sizes = sorted({min(int(v), len(data.train)) for v in self.settings.data_sizes})
+        fusion = self.fusion(data.network)
+        net = data.network
+        frames = []
+        base = dict(data=data.kind, scene=data.label, test_episodes=len(data.test), seed=seed)
+        offline = OfflineData(data, self.cm_fused, self.offline_source)
+        runs = []
+        for entry in self.ethucy_tracking_models:
+            model = entry.make(data.scenario, data.network)
+            runs.append((entry.label, model, self.learner(model, data, fusion)))
+        for n in sizes:
+            for label, model, alg in runs:
+                fit_offline(model, offline, n, seed * 7919 + n)
+                model.begin_episodes(data.test.states)
+                if alg.learnable:
+                    train_online(alg, data, n)
+                df = metric_rows(self.evaluate(alg, data, model.learnable), net, train_episodes=n, **base)
+                df.insert(0, "model", label)
+                df.insert(1, "consensus", fusion.name)
+                frames.append(df)
+            log.info("%s seed %d: n=%d done", data.label, seed, n)
+        return pd.concat(frames, ignore_index=True)
+
+    def sources(self) -> list[tuple[str, str]]:
+        """The data sources of the run, ``(kind, label)``: the scenes, then the synthetic scenario
+        (``data_size`` with ``synthetic``)."""
+        s = self.settings
+        extra = [("synthetic", "synthetic")] if s.protocol == "data_size" and s.synthetic else []
+        return [("real", str(sc)) for sc in s.scenes] + extra
+
+    def run(self, diagnostics: Diagnostics | None = None, progress: bool = False) -> pd.DataFrame:
+        """Every source of the protocol (see the module docstring); a tidy DataFrame (one row per
+        source x model x node x episode x metric, plus the parameter and trajectory rows). The
+        component times of each source reach ``diagnostics`` (``<source>/<model>_s``)."""
+        s = self.settings
+        seed0 = int(self.seed)
+        frames = []
+        t_start = time.perf_counter()
+        if s.protocol == "tables":
+            for scene in s.scenes:
+                torch.manual_seed(seed0)
+                data = self.real_data(str(scene), seed0, int(s.train_episodes))
+                df = self.protocol_tables(data, seed0)
+                if diagnostics is not None:
+                    for k, v in df.attrs.get("times", {}).items():
+                        diagnostics.timings[f"{data.label}/{k}_s"] = round(v, 3)
+                frames.append(df)
+        else:
+            max_train = max(int(v) for v in s.data_sizes)
+            for kind, label in self.sources():
+                for i in range(int(s.seeds)):
+                    seed = seed0 + i
+                    torch.manual_seed(seed)
+                    data = self.real_data(label, seed, max_train) if kind == "real" else self.synthetic_data(seed, max_train)
+                    frames.append(self.protocol_data_size(data, seed))
+        df = pd.concat(frames, ignore_index=True)
+        df.insert(2, "protocol", str(s.protocol))
+        df.insert(3, "agents", int(s.agents))
+        for col in ("step", "agent"):
+            if col not in df.columns:
+                df[col] = np.nan
+        log.info("%s/%s finished in %.1fs", TASK, s.protocol, time.perf_counter() - t_start)
+        return df
 
 
-def _options(names: list[str]) -> dict[str, dict]:
-    """The plain configs of ``conf/model`` options (:func:`dslearn.compose.group_options`), memoised by
-    the config folders and the option: the up-front check of every job of a sweep and the run compose
-    the same options, and composing one costs ~0.3 s."""
-    from dslearn.conf_paths import CONF_DIRS
-
-    where = tuple(str(d) for d in CONF_DIRS)
-    todo = [n for n in names if (where, n) not in _OPTIONS]
-    if todo:
-        for n, node in group_options("model", todo).items():
-            _OPTIONS[(where, n)] = OmegaConf.to_container(node, resolve=True)
-    return {n: _OPTIONS[(where, n)] for n in names}
-
-
-def build_model(spec: dict, data: Data, dtype, device) -> MotionModel:
-    """The model of an entry's ``spec`` (:func:`model_entries`), sized by the data source's scenario
-    (:attr:`dslearn.sim.real.Data.scenario`) and network."""
-    return build_motion_model(spec, data.scenario, data.network, dtype, device)
-
-
-def observation_model(cfg: DictConfig, data: Data, dtype, device):
-    """The root ``observation`` group's sensor model for ``data``'s network; its noise, where the option
-    leaves it at the network's (``${network.meas_std}``), is this study's sensors' (``task.network.meas_std``)."""
-    raw = OmegaConf.to_container(cfg.observation, resolve=False)
-    spec = OmegaConf.to_container(cfg.observation, resolve=True)
-    if raw.get("noise_std") == NETWORK_NOISE:
-        spec["noise_std"] = float(data.network.meas_std)
-    return build_observation(spec, data.network, dtype, device)
-
-
-def offline_source(model: MotionModel, cfg: DictConfig) -> str:
-    """What an offline model learns from: its ``train_on``, else ``task.train_on``."""
-    return str(model.train_on or cfg.task.get("train_on", "fused"))
-
-
-def _init(cfg, data: Data, ep: Measurements, fusion: Fusion):
-    return initial_belief(ep, data.network, data.ctx.dt, fusion, data.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
-
-
-@torch.no_grad()
-def cm_fused(cfg: DictConfig, data: Data, ep: Episodes) -> Tensor:
-    r"""Track ``ep`` with LIN and consensus on measurements (CM); the nodes' estimates combined
-    by their information, :math:`\hat y = (\sum_i \Omega_i)^{-1} \sum_i \Omega_i \hat y_i`,
-    ``(B, K+1, Dx)``.
-
-    The initial belief is fused by CM like every later step, and a node that learns nothing
-    about a target holds the diffuse prior (near-zero information): the information weighting
-    gives such a node almost no weight, where a plain node average would drag the estimate
-    towards the prior's mean. After consensus the nodes agree closely, and the combination is
-    close to their average.
-    """
-    net, c = data.network, cfg.consensus
-    fusion = ConsensusOnMeasurements.for_network(adjacency=net.adjacency, weights=c.weights,
-                                                 iterations=int(c.iterations), omega=c.omega)
-    lin = ConstantVelocity(data.num_agents, float(cfg.task.cm_fusion.noise_std))
-    obs = LinearPositionObservation(net.meas_std)
-    res = track(ep.measurements, net, lin, obs, fusion, data.ctx, _init(cfg, data, ep.measurements, fusion))
-    info = res.info.sum(0)
-    q = (res.info @ res.mean.unsqueeze(-1)).sum(0)
-    return torch.cholesky_solve(q, safe_cholesky(info)).squeeze(-1)
-
-
-def learner(cfg, model, data: Data, fusion: Fusion, dtype=torch.float64, device="cpu") -> OnlineLearner:
-    """Algorithm 1 (:class:`~dslearn.learning.online.OnlineLearner`) for ``model`` on ``data``'s network, with
-    the root ``filter`` group's prediction step (EKF, or ``filter=ukf``) and a fresh sensor model of the
-    root ``observation`` group (:func:`observation_model`; ``observation=gp`` learns online too)."""
-    return OnlineLearner(data.network, model, observation_model(cfg, data, dtype, torch.device(device)), fusion, data.ctx,
-                         init=lambda ep: _init(cfg, data, ep, fusion), predict_step=build_predict(cfg),
-                         learn_gate_std=cfg.filter.get("learn_gate_std"))
-
-
+# learning ----------------------------------------------------------------------------------
 def train_online(alg: OnlineLearner, data: Data, upto: int) -> None:
     """Algorithm 1 on the training episodes the learner has not seen, up to ``upto`` (one at a time)."""
     for k in range(alg.seen, upto):
         alg.learn(data.train.measurements.select(slice(k, k + 1)))
 
 
-def evaluate_tracking(alg: OnlineLearner, data: Data, per_node: bool) -> dict[str, Tensor]:
-    """Tracking metrics on the test episodes plus the prediction error (Table II/IV protocol)."""
-    m = tracking_metrics(alg.estimate(data.test.measurements), data.test.states)
-    m["pred_err"] = prediction_error(alg.model, data.test.states, data.network.num_nodes, data.ctx, per_node=per_node)
-    return m
-
-
 class OfflineData:
     """The trajectories offline models learn from, made once per data source: the true training
-    tracks, or the CM-fused estimates (:func:`cm_fused`, made on first use)."""
+    tracks, or the fused estimates (``fuse(data, episodes)``, e.g. :meth:`EthucyTrackingStudy.cm_fused`,
+    made on first use). ``source(model)`` names what a model learns from (``truth`` or ``fused``)."""
 
-    def __init__(self, cfg: DictConfig, data: Data, times: dict | None = None):
-        self.cfg, self.data, self.times, self._fused = cfg, data, times if times is not None else {}, None
+    def __init__(self, data: Data, fuse: Callable[[Data, Episodes], Tensor], source: Callable[[MotionModel], str],
+                 times: dict | None = None):
+        self.data, self.fuse, self.source = data, fuse, source
+        self.times, self._fused = times if times is not None else {}, None
 
     def __call__(self, model: MotionModel) -> Tensor:
-        src = offline_source(model, self.cfg)
-        if src == "truth":
+        if self.source(model) == "truth":
             return self.data.train.states
         if self._fused is None:
             t0 = time.perf_counter()
-            self._fused = cm_fused(self.cfg, self.data, self.data.train)
+            self._fused = self.fuse(self.data, self.data.train)
             self.times["cm_fuse"] = time.perf_counter() - t0
         return self._fused
 
@@ -233,159 +380,18 @@ def fit_offline(model: MotionModel, source: OfflineData, n: int, seed: int) -> N
     if model.learns_offline:
         model.fit_offline(source(model)[:n], source.data.ctx.dt, seed=int(seed))
         log.info("%s: %s fitted offline on %d %s training episodes: %s", source.data.label, type(model).__name__, n,
-                 offline_source(model, source.cfg), {k: round(v, 4) for k, v in getattr(model, "fit_info", {}).items()})
+                 source.source(model), {k: round(v, 4) for k, v in getattr(model, "fit_info", {}).items()})
 
 
-def _pred_rows(model, src: Data, per_node: bool, **keys) -> pd.DataFrame:
-    err = prediction_error(model, src.test.states, src.network.num_nodes, src.ctx, per_node=per_node)
-    return metric_rows({"pred_err": err}, src.network, **keys)
-
-
-def trajectory_rows(model, src: Data, per_node: bool, n: int, **keys) -> pd.DataFrame:
-    """Predicted positions of the first ``n`` test episodes (node ``sensor1``): rows ``pred_x``/``pred_y``
-    with ``step`` (0..K; step 0 is the given true state) and ``agent`` columns."""
-    if n <= 0:
-        return pd.DataFrame()
-    st = src.test.states  # the whole test batch (per-episode model state, e.g. SFM's v*), first n kept
+@torch.no_grad()
+def rollout_from_truth(model: MotionModel, src: Data, per_node: bool) -> Tensor:
+    """The model's roll-out of every test episode from its true state at t = 0, with that state first:
+    ``(B, K+1, Dx)`` (``per_node``: node ``sensor1``'s model)."""
+    st = src.test.states  # the whole test batch (per-episode model state, e.g. SFM's v*)
     x0 = st[:, 0]
     k = st.shape[1] - 1
-    with torch.no_grad():
-        if per_node:
-            roll = model.rollout(x0.unsqueeze(0).expand(src.network.num_nodes, *x0.shape).contiguous(), k, src.ctx)[0]
-        else:
-            roll = model.rollout(x0, k, src.ctx)
-    return position_rows(torch.cat([x0.unsqueeze(1), roll], 1), src, n, **keys)
-
-
-def position_rows(traj: Tensor, src: Data, n: int, **keys) -> pd.DataFrame:
-    """Rows ``pred_x``/``pred_y`` (node ``sensor1``, ``node_kind`` trajectory) of the positions in
-    the first ``n`` joint-state trajectories ``traj (B, K+1, Dx)``."""
-    if n <= 0:
-        return pd.DataFrame()
-    pos = agents(traj[:n])[..., POS].detach().cpu().double().numpy()  # (n, K+1, A, 2)
-    b, k1, a, _ = pos.shape
-    ep, step, ag = np.meshgrid(np.arange(b), np.arange(k1), np.arange(a), indexing="ij")
-    frames = []
-    for c, name in ((0, "pred_x"), (1, "pred_y")):
-        frames.append(
-            pd.DataFrame(
-                {"node": src.network.names[0], "node_kind": "trajectory", "episode": ep.ravel(), "step": step.ravel(),
-                 "agent": ag.ravel(), "metric": name, "value": pos[..., c].ravel()}
-            )
-        )
-    df = pd.concat(frames, ignore_index=True)
-    for i, (kk, v) in enumerate(keys.items()):
-        df.insert(i, kk, v)
-    return df
-
-
-# protocols ---------------------------------------------------------------------------------
-def protocol_tables(cfg: DictConfig, data: Data, seed: int, dtype, device) -> pd.DataFrame:
-    """Tables III–IV and Fig. 4 rows for one data source: every model of ``task.models`` tracks the
-    test episodes (after its online or offline learning on the ``n`` training episodes) and rolls
-    them out from the truth; an offline model's fit adds its ``fit_info`` as parameter rows
-    (``<label>_<key>``, e.g. ``sfm_tau``, ``lstm_train_loss``)."""
-    n_train = len(data.train)
-    fusion = _fusion(cfg, data.network)
-    net = data.network
-    base = dict(data=data.kind, scene=data.label, train_episodes=n_train, test_episodes=len(data.test), seed=seed)
-    frames, times = [], {}
-    n_plot = min(int(cfg.task.plot_episodes), len(data.test))
-    offline = OfflineData(cfg, data, times)
-
-    def param(metric, value):  # one scalar row (node avg, node_kind param)
-        return pd.DataFrame({"node": ["avg"], "node_kind": ["param"], "episode": [0], "metric": [metric], "value": [value],
-                             **{kk: [vv] for kk, vv in base.items()}})
-
-    def add(model_name, cons, df):
-        for i, (k, v) in enumerate({"model": model_name, "consensus": cons}.items()):
-            df.insert(i, k, v)
-        frames.append(df)
-
-    cover = {"visible_frac": data.info.get("visible_frac", float("nan")), "train_pool": data.info.get("train_pool", float("nan"))}
-    for k, v in cover.items():  # fraction of (test episode, step, pedestrian) seen by >= 1 sensor; episodes available
-        add("-", "-", param(k, float(v)))
-    if n_plot:
-        add("truth", "-", position_rows(data.test.states, data, n_plot, **base))
-    for _, label, spec in model_entries(cfg):
-        t0 = time.perf_counter()
-        model = build_model(spec, data, dtype, device)
-        fit_offline(model, offline, n_train, seed)
-        for k, v in getattr(model, "fit_info", {}).items():
-            add(label, "-", param(f"{label}_{k}", float(v)))
-        model.begin_episodes(data.test.states)
-        alg = learner(cfg, model, data, fusion, dtype, device)
-        if alg.learnable:
-            train_online(alg, data, n_train)
-        add(label, fusion.name, metric_rows(evaluate_tracking(alg, data, model.learnable), net, **base))
-        add(label, fusion.name, trajectory_rows(model, data, model.learnable, n_plot, **base))
-        times[label] = time.perf_counter() - t0
-    log.info("%s: component times %s", data.label, {k: round(v, 1) for k, v in times.items()})
-    df = pd.concat(frames, ignore_index=True)
-    df.attrs["times"] = times
-    return df
-
-
-def protocol_data_size(cfg: DictConfig, data: Data, seed: int, dtype, device) -> pd.DataFrame:
-    """Fig. 5 rows for one data source and seed: every model of ``task.models`` after ``n`` training
-    episodes, ``n`` in ``task.data_sizes`` (online models learn on, episode after episode; offline
-    models are fitted again on the first ``n``, with seed ``seed * 7919 + n``)."""
-    t = cfg.task
-    sizes = sorted({min(int(v), len(data.train)) for v in t.data_sizes})
-    fusion = _fusion(cfg, data.network)
-    net = data.network
-    frames = []
-    base = dict(data=data.kind, scene=data.label, test_episodes=len(data.test), seed=seed)
-    offline = OfflineData(cfg, data)
-    runs = []
-    for _, label, spec in model_entries(cfg):
-        model = build_model(spec, data, dtype, device)
-        runs.append((label, model, learner(cfg, model, data, fusion, dtype, device)))
-    for n in sizes:
-        for label, model, alg in runs:
-            fit_offline(model, offline, n, seed * 7919 + n)
-            model.begin_episodes(data.test.states)
-            if alg.learnable:
-                train_online(alg, data, n)
-            df = metric_rows(evaluate_tracking(alg, data, model.learnable), net, train_episodes=n, **base)
-            df.insert(0, "model", label)
-            df.insert(1, "consensus", fusion.name)
-            frames.append(df)
-        log.info("%s seed %d: n=%d done", data.label, seed, n)
-    return pd.concat(frames, ignore_index=True)
-
-
-def run(cfg: DictConfig) -> pd.DataFrame:
-    """Task entry point for ``dslearn-run`` (see the module docstring); ``cfg`` is already checked
-    (:mod:`dslearn.schemas.ethucy_tracking`)."""
-    t = cfg.task
-    dtype = resolve_dtype(cfg.get("dtype", "float64"))
-    device = torch.device(str(cfg.get("device", "cpu")))
-    seed0 = int(cfg.seed)
-    frames = []
-    t_start = time.perf_counter()
-    if t.protocol == "tables":
-        for scene in t.scenes:
-            torch.manual_seed(seed0)
-            data = real_data(cfg, str(scene), seed0, int(t.train_episodes), dtype, device)
-            frames.append(protocol_tables(cfg, data, seed0, dtype, device))
+    if per_node:
+        roll = model.rollout(x0.unsqueeze(0).expand(src.network.num_nodes, *x0.shape).contiguous(), k, src.ctx)[0]
     else:
-        max_train = max(int(v) for v in t.data_sizes)
-        sources = [("real", str(s)) for s in t.scenes] + ([("synthetic", "synthetic")] if t.get("synthetic", False) else [])
-        for kind, label in sources:
-            for i in range(int(t.seeds)):
-                seed = seed0 + i
-                torch.manual_seed(seed)
-                if kind == "real":
-                    data = real_data(cfg, label, seed, max_train, dtype, device)
-                else:
-                    data = synthetic_data(cfg, seed, max_train, dtype, device)
-                frames.append(protocol_data_size(cfg, data, seed, dtype, device))
-    df = pd.concat(frames, ignore_index=True)
-    df.insert(2, "protocol", str(t.protocol))
-    df.insert(3, "agents", int(t.agents))
-    for col in ("step", "agent"):
-        if col not in df.columns:
-            df[col] = np.nan
-    log.info("%s/%s finished in %.1fs", TASK, t.protocol, time.perf_counter() - t_start)
-    return df
+        roll = model.rollout(x0, k, src.ctx)
+    return torch.cat([x0.unsqueeze(1), roll], 1)

@@ -31,6 +31,14 @@ from dslearn.settings import ranged
 from dslearn.sim.scenario import sample_split
 
 
+#: files a matrix sweep writes into its folder (the matrix sweeper): every combination of the sweep, its
+#: job number (empty where it does not fit), row (method label), column (scenario name), units and reason
+CELLS_FILE = "matrix_cells.csv"
+#: the combinations that do not fit, with the reason (the same columns; the report's "n/a" cells)
+SKIPPED_FILE = "skipped_cells.csv"
+CELL_COLUMNS = ("job", "method", "scenario", "units", "reason", "overrides")
+
+
 @dataclass
 class MatrixSettings:
     """``task=matrix``: the episodes of a cell."""

@@ -14,11 +14,12 @@ from __future__ import annotations
 import time
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from dslearn.learning.online_em import simulate_and_filter, tbn_params
+from dslearn.learning.online_em import TBNJob, simulate_and_filter
+from dslearn.metrics.navigation import node_steady_rms, tbn_errors
 from dslearn.sim.terrain import terrain_gradient
-from dslearn.studies.braga_tbn import job_from_config
+from dslearn.studies.braga_tbn import BragaStudy, steady_steps
 
 
 def compose_cfg(overrides: list[str] = ()) -> DictConfig:
@@ -36,32 +37,37 @@ def compose_cfg(overrides: list[str] = ()) -> DictConfig:
     return cfg
 
 
-def _params(cfg: DictConfig) -> dict:
-    """:func:`dslearn.learning.online_em.tbn_params` of the configuration's task."""
-    return tbn_params(OmegaConf.to_container(cfg.task, resolve=True))
+def study_of(cfg: DictConfig) -> BragaStudy:
+    """The study of a checked ``braga_tbn`` configuration, built by the composition root."""
+    from dslearn.compose import build_study
+
+    study = build_study(cfg)
+    if not isinstance(study, BragaStudy):
+        raise TypeError(f"tbn_trace diagnoses the braga_tbn study, not {type(study).__name__}")
+    return study
 
 
 def trace_runs(cfg: DictConfig, episodes, diagnostics: bool = True, nodes: list[int] | None = None):
     """Simulate and filter the given Monte Carlo runs (any subset, any order: each run's result depends only on
-    (seed, run index, strategy)) and return ``(scenario, TBNResult)`` with the per-step diagnostics of
-    :func:`dslearn.learning.online_em.run_tbn` (ESS, particle spread, velocity error, ...) for lost-track analysis.
+    (seed, run index, strategy)) and return ``(scenario, TBNResult, TBNErrors)`` with the per-step diagnostics of
+    :func:`dslearn.learning.online_em.run_tbn` (ESS, particle spread, ...) and the errors against the truth
+    (:func:`dslearn.metrics.navigation.tbn_errors`: position, with ``diagnostics`` also velocity error and height
+    misfit) for lost-track analysis.
     ``nodes``: filter only these aircraft (noncooperative only); the scenario is restricted to them."""
-    return simulate_and_filter(job_from_config(cfg), list(episodes), diagnostics=diagnostics, nodes=nodes)
+    scn, res = simulate_and_filter(study_of(cfg).job(), list(episodes), diagnostics=diagnostics, nodes=nodes)
+    return scn, res, tbn_errors(res, scn, detail=diagnostics)
 
 
-def _screen_chunk(cfg_yaml: str, episodes: list[int], nodes: list[int] | None) -> list[tuple]:
+def _screen_chunk(job: TBNJob, n_ss: int, episodes: list[int], nodes: list[int] | None) -> list[tuple]:
     torch.set_num_threads(1)
-    cfg = OmegaConf.create(cfg_yaml)
-    job = job_from_config(cfg)
-    p, truth = job["p"], job["truth"]
     scn, res = simulate_and_filter(job, episodes, nodes=nodes)
-    n_ss = max(1, int(round(p["steady_state_s"] / p["dt"])))
-    node_rms = res.pos_se[-n_ss:].mean(0).sqrt()  # (R, C, S)
-    err_max = res.pos_se.amax(0).sqrt()
-    mu = (res.mu[-n_ss:] - truth.mu).pow(2).mean((0, -1)).sqrt()  # (R, C, S) per-node mu RMS
+    pos_se = tbn_errors(res, scn).pos_se
+    node_rms = node_steady_rms(pos_se, n_ss)  # (R, C, S)
+    err_max = pos_se.amax(0).sqrt()
+    mu = (res.mu[-n_ss:] - job.truth.mu).pow(2).mean((0, -1)).sqrt()  # (R, C, S) per-node mu RMS
     out = []
     for ri, ep in enumerate(episodes):
-        for ci, sname in enumerate(p["strategies"]):
+        for ci, sname in enumerate(job.params.strategies):
             out.append((ep, sname, node_rms[ri, ci].tolist(), err_max[ri, ci].tolist(), mu[ri, ci].tolist()))
     return out
 
@@ -69,18 +75,19 @@ def _screen_chunk(cfg_yaml: str, episodes: list[int], nodes: list[int] | None) -
 def screen_lost_tracks(cfg: DictConfig, episodes, nodes: list[int] | None = None, chunk: int = 10) -> list[tuple]:
     """Per-node steady-state position RMS, largest position error and mu RMS of many runs, in ``task.workers``
     processes (chunks of ``chunk`` runs). Returns ``(episode, strategy, node_rms, err_max, mu_rms)`` tuples."""
-    p = _params(cfg)
+    study = study_of(cfg)
+    job, n_ss, workers = study.job(), steady_steps(study.settings), study.settings.workers
     episodes = list(episodes)
     chunks = [episodes[i:i + chunk] for i in range(0, len(episodes), chunk)]
-    text = OmegaConf.to_yaml(cfg, resolve=True)
-    if p["workers"] <= 1 or len(chunks) == 1:
-        parts = [_screen_chunk(text, c, nodes) for c in chunks]
+    if workers <= 1 or len(chunks) == 1:
+        parts = [_screen_chunk(job, n_ss, c, nodes) for c in chunks]
     else:
         import concurrent.futures as cf
         import multiprocessing as mp
 
-        with cf.ProcessPoolExecutor(min(p["workers"], len(chunks)), mp_context=mp.get_context("spawn")) as ex:
-            parts = list(ex.map(_screen_chunk, [text] * len(chunks), chunks, [nodes] * len(chunks)))
+        with cf.ProcessPoolExecutor(min(workers, len(chunks)), mp_context=mp.get_context("spawn")) as ex:
+            parts = list(ex.map(_screen_chunk, [job] * len(chunks), [n_ss] * len(chunks), chunks,
+                                [nodes] * len(chunks)))
     return [row for part in parts for row in part]
 
 
@@ -106,9 +113,9 @@ def benchmark(steps: int = 200, mc_batch: int = 1, num_particles: int = 300, dev
     if strategies is not None:
         over.append(f"task.strategies=[{','.join(strategies)}]")
     cfg = compose_cfg(over)
-    p = _params(cfg)
+    study = study_of(cfg)
     t0 = time.perf_counter()
-    job = job_from_config(cfg)
+    job = study.job()
     clock = {}
     orig = _tbn.rbpf_step
 
@@ -124,7 +131,7 @@ def benchmark(steps: int = 200, mc_batch: int = 1, num_particles: int = 300, dev
         _tbn.rbpf_step = orig
     elapsed = time.perf_counter() - clock["wall"]
     cpu = time.process_time() - clock["cpu"]
-    n_strat = len(p["strategies"])
+    n_strat = len(study.settings.strategies)
     ms, cpu_ms = 1000 * elapsed / steps, 1000 * cpu / steps
     s_run = cpu_ms * 1800 / 1000 / mc_batch
     out = {"ms_per_step": ms, "cpu_ms_per_step": cpu_ms, "s_per_run_all": s_run,
@@ -148,11 +155,11 @@ def _episodes(text: str) -> list[int]:
 
 def _trace_report(cfg: DictConfig, episodes: list[int], nodes: list[int] | None, show: list[int] | None) -> str:
     """Per-node summary and, for lost nodes (or ``show``), a time table of the diagnostics."""
-    p = _params(cfg)
-    scn, res = trace_runs(cfg, episodes, nodes=nodes)
+    s = study_of(cfg).settings
+    scn, res, errors = trace_runs(cfg, episodes, nodes=nodes)
     dg, grad = res.diagnostics, terrain_gradient(scn)
-    n_ss = max(1, int(round(p["steady_state_s"] / p["dt"])))
-    err = res.pos_se.sqrt()  # (T, R, C, S)
+    n_ss = steady_steps(s)
+    err = errors.pos_se.sqrt()  # (T, R, C, S)
     spread = dg["spread"]
     g = grad.permute(2, 0, 1)[:, :, None, :].expand_as(err)  # (T, R, C, S)
     flat = g < 0.2
@@ -163,12 +170,12 @@ def _trace_report(cfg: DictConfig, episodes: list[int], nodes: list[int] | None,
     steps = err.shape[0]
     times = list(range(9, min(steps, 400), 20)) + list(range(499, steps, 250))
     for ri, ep in enumerate(episodes):
-        for ci, sname in enumerate(p["strategies"]):
+        for ci, sname in enumerate(s.strategies):
             ss = err[-n_ss:, ri, ci].pow(2).mean(0).sqrt()
             lines.append(f"run {ep} {sname}: node steady-state RMS [m] {[round(v, 1) for v in ss.tolist()]}, "
                          f"max error {err[:, ri, ci].max():.1f} m")
             for si, node in enumerate(node_ids):
-                if not (ss[si] > p["lost_track_m"] or (show is not None and node in show)):
+                if not (ss[si] > s.lost_track_m or (show is not None and node in show)):
                     continue
                 mu, sg, pi = res.mu[:, ri, ci, si], res.sigma[:, ri, ci, si], res.pi[:, ri, ci, si]
                 r_last = (scn.r[ri, si, 1:] == mu.shape[-1] - 1).to(err.dtype)
@@ -178,25 +185,26 @@ def _trace_report(cfg: DictConfig, episodes: list[int], nodes: list[int] | None,
                     w = slice(max(0, t - 9), t + 1)
                     par = " ".join(f"{v:6.2f}" for v in (*mu[t].tolist(), *sg[t].tolist(),
                                                          *pi[t].diagonal().tolist()))
-                    lines.append(f"  {(t + 1) * p['dt']:6.2f} | {err[t, ri, ci, si]:6.1f} {spread[t, ri, ci, si]:5.1f} "
-                                 f"{dg['vel_se'][t, ri, ci, si].sqrt():5.1f} | {dg['ess'][t, ri, ci, si]:4.0f} | "
-                                 f"{grad[ri, si, t]:.2f} | {dg['h_misfit'][w, ri, ci, si].mean():6.2f} | "
+                    lines.append(f"  {(t + 1) * s.dt:6.2f} | {err[t, ri, ci, si]:6.1f} {spread[t, ri, ci, si]:5.1f} "
+                                 f"{errors.vel_se[t, ri, ci, si].sqrt():5.1f} | {dg['ess'][t, ri, ci, si]:4.0f} | "
+                                 f"{grad[ri, si, t]:.2f} | {errors.h_misfit[w, ri, ci, si].mean():6.2f} | "
                                  f"{dg['p_mode_last'][w, ri, ci, si].mean():.2f} ({r_last[w].mean():.2f}) | {par}")
     return "\n".join(lines)
 
 
 def _screen_report(cfg: DictConfig, episodes: list[int], nodes: list[int] | None) -> str:
-    p = _params(cfg)
+    s = study_of(cfg).settings
     rows = screen_lost_tracks(cfg, episodes, nodes=nodes)
     lines = []
-    for sname in p["strategies"]:
+    lost_m = s.lost_track_m
+    for sname in s.strategies:
         r = [row for row in rows if row[1] == sname]
         worst = torch.tensor([max(row[2]) for row in r], dtype=torch.float64)
         emax = torch.tensor([max(row[3]) for row in r], dtype=torch.float64)
         mu = torch.tensor([sum(v * v for v in row[4]) / len(row[4]) for row in r], dtype=torch.float64).sqrt()
         q = emax.quantile(torch.tensor([0.5, 0.9], dtype=torch.float64)).tolist()
-        lines.append(f"{sname}: {len(r)} runs, lost track (worst node > {p['lost_track_m']:g} m) "
-                     f"{int((worst > p['lost_track_m']).sum())}; worst-node steady-state RMS median {worst.median():.2f} m; "
+        lines.append(f"{sname}: {len(r)} runs, lost track (worst node > {lost_m:g} m) "
+                     f"{int((worst > lost_m).sum())}; worst-node steady-state RMS median {worst.median():.2f} m; "
                      f"max error median {q[0]:.1f} m, 90% {q[1]:.1f} m, max {emax.max():.1f} m; mu RMS "
                      f"{mu.pow(2).mean().sqrt():.3f} m (median {mu.median():.3f} m)")
     return "\n".join(lines)

@@ -5,7 +5,9 @@ iterations) and ``B`` Monte Carlo runs; only the ``K`` timings are a Python loop
 trajectories and the standard-normal sensor noise are shared by all configurations (common
 random numbers), the noise is scaled by each configuration's ``sigma_y``. Every computation
 is per run (no reduction over ``B``), so a run's results do not depend on the other runs of
-its batch; :func:`~dslearn.sim.squared_range.run_noise` gives each run its own stream.
+its batch; :func:`~dslearn.sim.squared_range.run_noise` gives each run its own stream. The engine
+returns estimates (and the truth it simulated from, apart); their errors against the truth and the
+CRLB at the true state are computed in :mod:`dslearn.metrics.identification`.
 
 :class:`TrackerSettings`' defaults are the paper's equations (``obs_var="crlb"``, no gate,
 flooding, scalar graph); the study's configuration (``conf/task/jiang_fg.yaml``) switches the
@@ -69,9 +71,8 @@ class SimulationOutput:
     """Tensors of one Monte Carlo batch. ``C`` configs, ``B`` runs, ``K`` timings, ``M`` params."""
 
     truth: Tensor             # (B, K, M)
-    fg_iter_sqerr: Tensor     # (T+1, C, B, K) identification squared error per parameter (mean over M) after t iters
+    fg_iter_means: Tensor     # (T+1, C, B, K, M) identification estimate after t = 0..T iterations
     estimates: dict = field(default_factory=dict)  # name -> (C, B, K, M)
-    crlb_truth: Tensor = None  # (C, B, K) per-parameter CRLB at the true state (Eq. 27)
     obs_var: Tensor = None     # (C, B, K) sigma_e^2 used by EKF-FG (mean over M)
     gated: Tensor = None       # (C, B) count of gated (inflated) FG outputs over timings and parameters
     near_zero_lambda: Tensor = None  # (C, B) count over timings
@@ -87,7 +88,7 @@ def simulate(
     num_iters: Tensor,
     settings: TrackerSettings,
 ) -> SimulationOutput:
-    """Run identification + EKF-FG, the centralised baselines and the CRLB.
+    """Run identification + EKF-FG and the centralised baselines.
 
     Args:
         h: measurement function ``(*B, M) -> (*B, N)``.
@@ -119,8 +120,8 @@ def simulate(
     P = torch.diag_embed(torch.cat([torch.full((M,), settings.initial_state_var),
                                     torch.full((M,), settings.initial_gradient_var)]).to(z)).expand(C, B, 2 * M, 2 * M)
 
-    fg_sq, est = [], {k: [] for k in ("prediction", "fg_identification", "ekf_fg", "centralized_gn", "centralized_ekf")}
-    crlb_true, obs_vars, conv = [], [], []
+    fg_means, est = [], {k: [] for k in ("prediction", "fg_identification", "ekf_fg", "centralized_gn", "centralized_ekf")}
+    obs_vars, conv = [], []
     near_zero = torch.zeros(C, B, dtype=torch.long, device=dev)
     floored = torch.zeros(C, B, dtype=torch.long, device=dev)
     gated = torch.zeros(C, B, dtype=torch.long, device=dev)
@@ -145,7 +146,7 @@ def simulate(
         st = ekf_fg_step(st, eta, obs_var, settings.process_var, settings.gradient_var,
                          x_pred=x_pred, P_pred=P_pred)
         gated += gated_k.sum(-1)
-        fg_sq.append((ident.mean - xk).square().mean(-1))          # (T+1, C, B)
+        fg_means.append(ident.mean)                                 # (T+1, C, B, M)
         near_zero += ident.near_zero_lambda
         floored += ident.floored
         conv.append(ident.iters_to_converge)
@@ -153,16 +154,14 @@ def simulate(
         z_pred, P_pred_c = cv_predict(z, P, settings.process_var, settings.gradient_var)
         gn = gauss_newton(h, samples, z_pred[..., :M], settings.baseline_iters)
         z, P = iterated_ekf_update(h, samples, sig_cb, z_pred, P_pred_c, settings.baseline_iters)
-        crlb_true.append(crlb(h, xk.expand(C, B, M), sig_cb, L, "trace_inverse"))
         obs_vars.append(obs_var.mean(-1))
         for name, val in (("prediction", x_pred), ("fg_identification", eta), ("ekf_fg", st.x_mean),
                           ("centralized_gn", gn), ("centralized_ekf", z[..., :M])):
             est[name].append(val)
     return SimulationOutput(
         truth=truth,
-        fg_iter_sqerr=torch.stack(fg_sq, -1),
+        fg_iter_means=torch.stack(fg_means, -2),
         estimates={k: torch.stack(v, 2) for k, v in est.items()},
-        crlb_truth=torch.stack(crlb_true, -1),
         obs_var=torch.stack(obs_vars, -1),
         near_zero_lambda=near_zero,
         floored=floored,

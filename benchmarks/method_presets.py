@@ -1,0 +1,73 @@
+"""The method presets of Yu et al.'s family (``conf/method/<filter>_<model>_<fusion>.yaml``): the distributed
+information filter with an EKF or UKF prediction step x five motion models x three fusions, each a plain
+YAML file that selects the parts of a matrix cell (``dslearn-run task=matrix method=ekf_gp_hybrid``).
+
+    python benchmarks/method_presets.py           # (re)write the 30 files
+    python benchmarks/method_presets.py --check   # exit 1 if a file is missing or differs from what it would write
+
+Other families' presets (``dgpt_*``, ``fg_ekf``, ``rbpf_em``) are written by hand beside these.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "conf" / "method"
+
+#: preset word -> (conf/filter option, what it is)
+FILTERS = {"ekf": ("default", "EKF prediction step (linearised at the mean)"),
+           "ukf": ("ukf", "UKF prediction step (sigma points through the motion model)")}
+#: preset word -> (conf/model option, what it is)
+MODELS = {"lin": ("lin", "constant velocity (LIN)"),
+          "sfm": ("sfm", "the social force model with the simulation's parameters"),
+          "gp": ("gp_increment", "the increment GP, learned online while tracking (Algorithm 1)"),
+          "lstm": ("lstm", "the LSTM, trained offline on the training episodes' tracks"),
+          "social_lstm": ("social_lstm", "the social LSTM, trained offline on the training episodes' tracks")}
+#: preset word -> (conf/consensus option, what it is)
+FUSIONS = {"individual": ("individual", "no fusion (each node alone)"),
+           "hybrid": ("hybrid", "hybrid consensus (L = 4 rounds)"),
+           "centralized": ("centralized", "a fusion centre")}
+
+
+def presets() -> dict[str, str]:
+    """File name -> text of every preset."""
+    out = {}
+    for f, (f_opt, f_what) in FILTERS.items():
+        for m, (m_opt, m_what) in MODELS.items():
+            for c, (c_opt, c_what) in FUSIONS.items():
+                name = f"{f}_{m}_{c}"
+                out[f"{name}.yaml"] = (
+                    "# @package _global_\n"
+                    f"# Yu et al.'s distributed filter: {f_what}, {m_what}, {c_what}.\n"
+                    f"# Written by benchmarks/method_presets.py (dslearn-run task=matrix method={name}).\n"
+                    "defaults:\n"
+                    f"  - override /filter: {f_opt}\n"
+                    f"  - override /model: {m_opt}\n"
+                    "  - override /observation: linear\n"
+                    f"  - override /consensus: {c_opt}\n"
+                )
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--check", action="store_true", help="compare instead of writing")
+    a = p.parse_args(argv)
+    want = presets()
+    if a.check:
+        bad = [n for n, t in want.items() if not (OUT / n).is_file() or (OUT / n).read_text() != t]
+        for n in bad:
+            print(f"conf/method/{n}: missing or not what benchmarks/method_presets.py writes", file=sys.stderr)
+        return 1 if bad else 0
+    OUT.mkdir(parents=True, exist_ok=True)
+    for n, t in want.items():
+        (OUT / n).write_text(t)
+    print(f"wrote {len(want)} presets into conf/method/")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

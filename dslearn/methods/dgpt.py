@@ -1,0 +1,144 @@
+r"""Liu et al.'s distributed GP tracker (DGPT, FUSION 2022) as a method of the matrix: every sensor is a
+local GP expert on its own sliding window of position measurements, a fusion centre combines the experts'
+predictions with one aggregation rule (the method's fusion part, :class:`~dslearn.fusion.aggregation.AggregationRule`)
+and the experts' shared hyperparameters are learned online from the factorised likelihood
+(:class:`~dslearn.filters.dgpt.HyperConfig`), all by :func:`dslearn.filters.dgpt.track`.
+
+The tracker follows one target: every (episode, target) pair of a scenario is an independent single-target
+episode (the sensors' measurements of that target), all of them one batch of the tracker. Its estimates are
+the fusion centre's updated estimates (step ``k`` from the measurements up to ``k``), with the tracker's
+per-axis variances as diagonal covariances. The GP's zero prior mean is put at the centre of the scenario's
+area (the Liu scenarios are centred on the origin, as the study's trajectories are).
+
+The tracker learns its hyperparameters within each episode, from that episode's measurements: the
+training episodes teach it nothing (the learning is online, per episode, as in the paper).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import torch
+
+from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
+from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.filters.dgpt import GP_INPUTS, OPTIMISERS, HyperConfig, track
+from dslearn.methods.base import require
+from dslearn.network import SensorNetwork
+
+#: the kind of fusion part the tracker takes (an aggregation rule of local GP experts)
+FUSION_KIND = "aggregation"
+_HYPER_KEYS = tuple(f.name for f in dataclasses.fields(HyperConfig))
+#: hyperparameter box: (lower key, upper key, the initial values that must lie inside)
+_BOX = (("min_noise", "max_noise", ("init_noise",)),
+        ("min_outputscale", "max_outputscale", ("init_outputscale",)),
+        ("min_lengthscale", "max_lengthscale", ("init_lengthscale_t", "init_lengthscale_r")))
+
+
+def hyper_config(hyper: HyperConfig | dict | None, prefix: str = "filter.hyper") -> HyperConfig:
+    """A checked :class:`HyperConfig` from a mapping of its fields (``None``: the defaults). ConfigError
+    naming ``prefix.<key>`` on an unknown key, a value out of range or an initial value outside its box."""
+    if hyper is None:
+        hc = HyperConfig()
+    elif isinstance(hyper, HyperConfig):
+        hc = hyper
+    else:
+        unknown = sorted(str(k) for k in hyper if k not in _HYPER_KEYS)
+        if unknown:
+            raise ConfigError(f"{prefix}: unknown key(s) {unknown}; allowed: {list(_HYPER_KEYS)}")
+        hc = HyperConfig(**dict(hyper))
+    check_choice(f"{prefix}.optimizer", hc.optimizer, OPTIMISERS)
+    for key in ("iters", "iters_first", "max_iters"):
+        v = getattr(hc, key)
+        low = 1 if key == "max_iters" else 0
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise ConfigError(f"{prefix}.{key}={v!r} must be an integer >= {low}")
+    if not isinstance(hc.gap_check, bool):
+        raise ConfigError(f"{prefix}.gap_check={hc.gap_check!r} must be true or false")
+    for key in ("lr", "tol", *(k for k in _HYPER_KEYS if k.startswith(("init_", "min_", "max_")) and k != "max_iters")):
+        check_positive(f"{prefix}.{key}", getattr(hc, key))
+    for lo, hi, inits in _BOX:
+        for f in inits:
+            if not getattr(hc, lo) <= getattr(hc, f) <= getattr(hc, hi):
+                raise ConfigError(f"{prefix}.{f}={getattr(hc, f)!r} must lie in [{prefix}.{lo}, {prefix}.{hi}] "
+                                  f"= [{getattr(hc, lo)!r}, {getattr(hc, hi)!r}]")
+    return hc
+
+
+@dataclasses.dataclass
+class DGPTMethod:
+    """Liu et al.'s DGPT on any scenario whose sensors measure the targets' positions.
+
+    Args:
+        fusion: the aggregation rule of the fusion centre (the ``consensus`` part:
+            :class:`~dslearn.fusion.aggregation.AggregationRule`, ``kind = "aggregation"``).
+        window: the sliding window of every expert, in steps.
+        gp_input: ``temporal`` (``x = t``) or ``spatiotemporal`` (``x = (previous estimate, t)``).
+        hyper: the online hyperparameter learning (:class:`~dslearn.filters.dgpt.HyperConfig` or a
+            mapping of its fields).
+        fusion_name: the fusion part's label (its ``conf/consensus`` option).
+    """
+
+    #: the kind of fusion part it takes (the composition's check compares it with the consensus part's ``kind``)
+    fusion_kind = FUSION_KIND
+
+    fusion: Any
+    window: int = 10
+    gp_input: str = "temporal"
+    hyper: Any = None
+    fusion_name: str | None = None
+
+    def __post_init__(self) -> None:
+        if getattr(self.fusion, "kind", None) != self.fusion_kind:
+            name = self.fusion_name or type(self.fusion).__name__
+            raise ConfigError(
+                f"consensus={name} is not a GP aggregation rule: Liu's DGPT (filter=dgpt) combines its sensors' "
+                f"local GP experts at a fusion centre with one, consensus=poe|gpoe|bcm|rbcm (an information-form "
+                f"fusion is the distributed filter's: filter=default|ukf)")
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
+            raise ConfigError(f"filter.window={self.window!r} must be an integer >= 1 (steps)")
+        check_choice("filter.gp_input", self.gp_input, GP_INPUTS)
+        self.hyper = hyper_config(self.hyper)
+
+    @property
+    def label(self) -> str:
+        rule = self.fusion.rule + (" normalised" if self.fusion.normalise_beta else "")
+        return f"dgpt {rule}" + ("" if self.gp_input == "temporal" else f" {self.gp_input}")
+
+    def fits(self, spec: ScenarioSpec) -> str | None:
+        return require(spec, "Liu's DGPT (sensors that measure each target's position)", measurement="position")
+
+    def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
+                 seed: int) -> Estimates:
+        """The fusion centre's estimates of every target of every test episode (``train`` is not used: the
+        tracker learns its hyperparameters online within each episode)."""
+        mean, var = self.track(test, network, scenario.spec.dt, area_centre(scenario.area))
+        cov = torch.diag_embed(var)
+        return Estimates(mean[None], cov[None], ["fusion"], torch.ones(1, dtype=torch.bool))
+
+    def track(self, meas: Measurements, network: SensorNetwork, dt: float, centre=(0.0, 0.0)):
+        """The tracker on every (episode, target) of ``meas`` (the sensing nodes of ``network``), with the GP's
+        prior mean at ``centre``: updated means and per-axis variances ``(B, K+1, A, 2)``."""
+        sens = network.is_sensor.to(meas.meas.device)
+        z, vis = meas.meas[sens], meas.visible[sens]  # (S, B, T, A, 2), (S, B, T, A)
+        s, b, t, a = vis.shape
+        z = z.permute(1, 3, 0, 2, 4).reshape(b * a, s, t, 2)
+        vis = vis.permute(1, 3, 0, 2).reshape(b * a, s, t)
+        c = torch.as_tensor(centre, dtype=z.dtype, device=z.device)
+        z = torch.where(vis.unsqueeze(-1), z - c, torch.zeros_like(z))
+        window = torch.full((b * a,), self.window, dtype=torch.long, device=z.device)
+        res = track(z, vis, window, gp_input=self.gp_input, aggregations=(self.fusion.rule,), centralised=False,
+                    hyper=self.hyper, dt=float(dt), normalise_beta=self.fusion.normalise_beta)
+        mean = (res.upd_mean[:, 0] + c).reshape(b, a, t, 2).transpose(1, 2)
+        var = res.upd_var[:, 0].reshape(b, a, t, 2).transpose(1, 2)
+        return mean, var
+
+
+def area_centre(area) -> tuple[float, float]:
+    """The centre of ``area = (xmin, xmax, ymin, ymax)``."""
+    x0, x1, y0, y1 = (float(v) for v in area)
+    if not all(math.isfinite(v) for v in (x0, x1, y0, y1)):
+        raise ConfigError(f"scenario.area={tuple(area)!r} must be finite")
+    return 0.5 * (x0 + x1), 0.5 * (y0 + y1)
