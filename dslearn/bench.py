@@ -34,14 +34,15 @@ Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
 
 Outputs in ``--out`` (default: a new folder ``bench-results/<date>_<time>`` in the current
 directory, so the committed ``benchmarks/`` tables are only rewritten when asked for with
-``--out benchmarks``): ``bench.csv``, ``bench.md`` (with machine info), ``gp_step_cost.png``. ``--quick`` runs a reduced set in a few minutes (without ``studies`` and
-``fantasy`` unless named).
+``--out benchmarks``): ``bench.csv``, ``bench.md`` (with machine info), ``gp_step_cost.png``.
+``--quick`` runs a reduced set in a few minutes (without ``studies`` and ``fantasy`` unless named).
 """
 
 from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
+import re
 import os
 import platform
 import resource
@@ -548,14 +549,33 @@ def eta_measure(model: str = "gp_increment", episodes: int = 150) -> list[str]:
     return out
 
 
+def plain_text(rst: str) -> str:
+    """The module docstring as plain text for ``--help``: reStructuredText roles (``:mod:`x```,
+    ``:data:`~x```) become their target's name, literals (````x````) their text."""
+    text = re.sub(r":[a-z]+:`(~?)([^`]+)`", lambda m: m.group(2).rsplit(".", 1)[-1] if m.group(1) else m.group(2), rst)
+    return text.replace("``", "")
+
+
+EPILOG = """examples:
+  dslearn-bench --quick                      the reduced suite (a few minutes): figures into bench-results/<date_time>/
+  dslearn-bench speed                        the speed targets only
+  dslearn-bench reference --ref-models lin,gp --ref-fusions hybrid
+  dslearn-bench --merge bench-results/a bench-results/b --out bench-results/all
+
+exit codes: 0 done, 1 a reference disagrees or an item failed, 2 bad arguments."""
+
+
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(prog="dslearn-bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="dslearn-bench", description=plain_text(__doc__), epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("workloads", nargs="*", help=f"any of {', '.join(ALL)} (default: all)")
     p.add_argument("--quick", action="store_true", help="reduced sizes: a few minutes")
-    p.add_argument("--models", default="lin,sfm,gp_increment")
-    p.add_argument("--fusions", default="individual,hybrid")
-    p.add_argument("--train", type=int, default=200)
-    p.add_argument("--test", type=int, default=50)
+    p.add_argument("--models", default="lin,sfm,gp_increment",
+                   help="protocol / dtype workloads: motion models, comma-separated (default: %(default)s)")
+    p.add_argument("--fusions", default="individual,hybrid",
+                   help="protocol / dtype workloads: consensus options, comma-separated (default: %(default)s)")
+    p.add_argument("--train", type=int, default=200, help="training episodes of the full protocol (default: %(default)s)")
+    p.add_argument("--test", type=int, default=50, help="test episodes of the full protocol (default: %(default)s)")
     p.add_argument("--ref-train", type=int, default=5, help="reference workload: training episodes (reduced protocol)")
     p.add_argument("--ref-test", type=int, default=5, help="reference workload: test episodes (reduced protocol)")
     p.add_argument("--ref-models", default="lin,sfm,gp,gp_increment,gp_window",
@@ -564,7 +584,7 @@ def main(argv=None) -> None:
                    help="reference workload: consensus options (every strategy; hybrid_nodes: omega = nodes)")
     p.add_argument("--workers", type=int, default=2, help="concurrent processes for the protocol / dtype items")
     p.add_argument("--threads", type=int, default=1, help="torch threads per process")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="cpu | cuda (default: %(default)s)")
     p.add_argument("--out", default=None, help="output folder (default: a new bench-results/<date>_<time>)")
     p.add_argument("--merge", nargs="+", metavar="DIR", help="only merge the bench.csv of earlier runs into --out")
     a = p.parse_args(argv)

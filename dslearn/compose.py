@@ -286,7 +286,8 @@ def _method(cfg: DictConfig, s: "_Slots"):
     from hydra.utils import get_object
 
     params = inspect.signature(get_object(str(cfg.filter._target_))).parameters
-    return build(cfg.filter, "filter", **{k: make() for k, make in makers.items() if k in params})
+    made = build(cfg.filter, "filter", **{k: make() for k, make in makers.items() if k in params})
+    return made() if isinstance(made, functools.partial) else made  # an engine that takes no run-time part
 
 
 def build_cell_parts(cfg: DictConfig, check_only: bool = False):

@@ -21,6 +21,8 @@ META_FILE = "meta.json"
 DONE_FILE = ".done"
 #: the gathered table of a sweep (written by :class:`dslearn.callbacks.GatherResults`)
 SWEEP_TABLE = "sweep_results"
+#: a run's tracking-figure arrays (written by the studies that track, drawn by ``dslearn-report`` as tracking.png)
+TRACKS_FILE = "tracks.npz"
 #: lock of a run folder while a run works in it (holds the owner's pid)
 LOCK_FILE = ".dslearn.lock"
 log = logging.getLogger("dslearn.io")
@@ -39,12 +41,21 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     the permissions a plain ``open(path, "w")`` would give (``0o666`` less the umask), not the
     owner-only mode of the temporary file.
     """
+    _atomic_write(path, text, "w")
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (as :func:`atomic_write_text`)."""
+    _atomic_write(path, data, "wb")
+
+
+def _atomic_write(path: str | Path, content, mode: str) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with os.fdopen(fd, mode) as f:
+            f.write(content)
             f.flush()
             os.fsync(f.fileno())
             os.fchmod(f.fileno(), 0o666 & ~_umask())
@@ -58,6 +69,73 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 def atomic_write_csv(df: pd.DataFrame, path: str | Path) -> None:
     """Write a DataFrame as CSV atomically (temp file + rename)."""
     atomic_write_text(path, df.to_csv(index=False))
+
+
+def atomic_write_npz(path: str | Path, arrays: dict) -> None:
+    """Write ``{name: array}`` as a compressed ``.npz`` file atomically (strings as unicode arrays:
+    ``numpy.load`` reads it back without pickles)."""
+    import numpy as np
+
+    buf = _io.BytesIO()
+    np.savez_compressed(buf, **{k: np.asarray(v) for k, v in arrays.items()})
+    atomic_write_bytes(path, buf.getvalue())
+
+
+class Artifacts(dict):
+    """Extra files of one run, ``{file name: content}``, that a study hands to the app beside its result
+    table, in the table's ``attrs[ARTIFACTS]`` (:func:`attach_artifact`); the app writes them into the
+    run folder before ``results.csv`` (:func:`write_artifacts`). Content by the name's suffix: ``.npz``
+    a dict of arrays, ``.csv`` a DataFrame, anything else text.
+
+    Compared by identity and never copied when pandas copies a table's ``attrs`` (arrays have no
+    truth value, and a result table is copied and concatenated many times)."""
+
+    def __eq__(self, other) -> bool:
+        return self is other
+
+    def __ne__(self, other) -> bool:
+        return self is not other
+
+    __hash__ = object.__hash__
+
+    def __copy__(self) -> "Artifacts":
+        return self
+
+    def __deepcopy__(self, memo) -> "Artifacts":
+        return self
+
+
+#: the key of a result table's ``attrs`` that holds its run's :class:`Artifacts`
+ARTIFACTS = "artifacts"
+
+
+def attach_artifact(df: pd.DataFrame, name: str, content) -> pd.DataFrame:
+    """Hand ``content`` to the app as the run-folder file ``name`` (a plain file name) with the result
+    table ``df`` (in place; returns ``df``)."""
+    if not name or Path(name).name != name or name.startswith("."):
+        raise ValueError(f"artifact name {name!r}: give a plain file name (no folder, not hidden)")
+    art = df.attrs.get(ARTIFACTS)
+    if not isinstance(art, Artifacts):
+        art = Artifacts()
+        df.attrs[ARTIFACTS] = art
+    art[name] = content
+    return df
+
+
+def write_artifacts(out_dir: str | Path, artifacts) -> list[Path]:
+    """Write a run's :class:`Artifacts` (``None``: nothing) into ``out_dir``, each atomically;
+    returns the paths written."""
+    written = []
+    for name, content in (artifacts or {}).items():
+        path = Path(out_dir) / name
+        if path.suffix == ".npz":
+            atomic_write_npz(path, content)
+        elif path.suffix == ".csv":
+            atomic_write_csv(content, path)
+        else:
+            atomic_write_text(path, str(content))
+        written.append(path)
+    return written
 
 
 def sha256_text(text: str) -> str:

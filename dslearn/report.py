@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import sys
 from pathlib import Path
 
@@ -28,7 +29,7 @@ import pandas as pd
 
 from dslearn.errors import DataFormatError
 from dslearn.io import atomic_write_csv, atomic_write_text, load_results
-from dslearn.reports.tables import AVG_LABEL, markdown  # noqa: F401  (markdown: also the public helper)
+from dslearn.reports.tables import AVG_LABEL, markdown, mean_std  # noqa: F401  (markdown: also the public helper)
 
 #: units of the metrics (``"1"`` = dimensionless); names ending in ``_s`` / ``_m`` / ``_frac`` /
 #: ``_kb`` get s / m / 1 / kB without an entry here
@@ -140,7 +141,7 @@ def console_table(summary: pd.DataFrame) -> str:
     extra = [c for c in ("train_seen",) if c in s.columns]
     if extra:
         s = s[s[extra[0]] == s[extra[0]].max()]
-    s["cell"] = s["mean"].map("{:.3f}".format) + " ± " + s["std"].map(lambda v: "-" if pd.isna(v) else f"{v:.3f}")
+    s["cell"] = [mean_std(m, d) for m, d in zip(s["mean"], s["std"])]  # 3 significant digits, "-" for no std
     head = ", ".join(f"{c}={s[c].iloc[0]}" for c in ("study", "model", "consensus") if c in s.columns)
     tab = s.pivot_table(index="node", columns="metric", values="cell", aggfunc="first", sort=False)
     nodes = [n for n in tab.index if n != "avg"]
@@ -197,7 +198,7 @@ def metric_tables(summary: pd.DataFrame) -> dict[str, pd.DataFrame]:
     keys = [c for c in keys if not (c.startswith("ov.") and c[3:] in s.columns)]  # override = a column already
     out = {}
     for metric, g in s.groupby("metric", sort=False):
-        cell = g["mean"].map("{:.4g}".format) + " ± " + g["std"].map(lambda v: "-" if pd.isna(v) else f"{v:.2g}")
+        cell = pd.Series([mean_std(m, d) for m, d in zip(g["mean"], g["std"])], index=g.index)
         t = g[keys].copy() if keys else pd.DataFrame(index=g.index)
         t["mean ± std"] = cell.values
         n = "n_seeds" if "n_seeds" in g.columns else "n"
@@ -322,10 +323,11 @@ def figure_data(results: pd.DataFrame) -> tuple[pd.DataFrame, str]:
     return out, ("seeds" if seeds else "episodes")
 
 
-def plot_figure(results: pd.DataFrame, path: Path) -> pd.DataFrame | None:
+def plot_figure(results: pd.DataFrame, path: Path, single: bool = True) -> pd.DataFrame | None:
     """``figure.png``: one panel per metric, the metric against the first swept key (lines =
     the other keys' combinations), error bars ± 1 std over seeds (or episodes with one seed),
-    units on the axes. Returns the plotted numbers (also written as ``figure_data.csv``)."""
+    units on the axes. Returns the plotted numbers (also written as ``figure_data.csv``).
+    ``single=False``: no figure (``None``) for a single configuration (one bar per panel)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -334,7 +336,7 @@ def plot_figure(results: pd.DataFrame, path: Path) -> pd.DataFrame | None:
     import warnings
 
     data, over = figure_data(results)
-    if data.empty:
+    if data.empty or (not single and set(data.columns) <= {"metric", "mean", "err", "n"}):
         return None
     with warnings.catch_warnings():  # layout/legend notes of matplotlib are not the user's business
         warnings.simplefilter("ignore", UserWarning)
@@ -421,6 +423,7 @@ FILE_NOTES = {
     "yu_table2.csv": "Yu Table II shape: prediction error per node x model (also .md)",
     "yu_nees.csv": "NEES/Dx in the Table I layout (also .md)",
     "yu_fig2.png": "Yu Fig. 2 shape: tracking error against training episodes and L",
+    "tracking.png": "the sensor network, a test episode's true and estimated tracks, error and NEES over time",
 }
 
 
@@ -450,7 +453,7 @@ def report(root: str | Path, out_dir: str | Path | None = None) -> str:
         written.append("summary_seeds.csv")
     texts = []
     tasks = results["task"].dropna().unique() if "task" in results.columns else []
-    before = {p.name for p in out.iterdir()} if out.is_dir() else set()
+    before = {(p.name, p.stat().st_mtime_ns) for p in out.iterdir()} if out.is_dir() else set()
     for task in tasks:
         try:
             mod = importlib.import_module(f"dslearn.reports.{task}")
@@ -461,11 +464,15 @@ def report(root: str | Path, out_dir: str | Path | None = None) -> str:
         fn = getattr(mod, "report", None)
         if fn is not None:
             sub = results[results["task"] == task]
-            texts.append(fn(sub, summary[summary.get("task", task) == task] if "task" in summary else summary, out))
-    study_files = sorted({p.name for p in out.iterdir()} - before - set(written) - {"report.md"})
+            kw = {"root": root} if "root" in inspect.signature(fn).parameters else {}  # the sweep's own files
+            texts.append(fn(sub, summary[summary.get("task", task) == task] if "task" in summary else summary, out, **kw))
+    # the files the study reports wrote (new or rewritten: a second report of a folder lists them again)
+    study_files = sorted({n for n, _ in {(p.name, p.stat().st_mtime_ns) for p in out.iterdir()} - before}
+                         - set(written) - {"report.md"})
     generic = generic_tables(seeds if seeds is not None else summary, out, figures=False)
     written += generic_tables.written
-    fig = plot_figure(results, out / "figure.png")
+    own = [f for f in study_files if f.endswith(".png")]
+    fig = plot_figure(results, out / "figure.png", single=not own)  # a single run: the study's figure instead
     if fig is not None:
         written += ["figure.png", "figure_data.csv"]
     text = "\n\n".join(t for t in texts if t) or generic
@@ -481,13 +488,44 @@ def report(root: str | Path, out_dir: str | Path | None = None) -> str:
     head = f"# dslearn report: {root}\n\nOpen this file first.\n\n"
     if fig is not None:
         head += "![every metric against the swept keys](figure.png)\n\n"
+    elif own and not any(f"]({f})" in t for f in own for t in texts):
+        head += f"![the study's figure]({own[0]})\n\n"
     atomic_write_text(out / "report.md", f"{head}{text}\n\n## Files written\n\n{notes}\n")
     report.written = [out / f for f in files]
     return text
 
 
+def _not_a_run(root: Path, e: Exception) -> str:
+    """For a folder that holds no result: what ``dslearn-report`` looks for, and what the folder holds."""
+    if not isinstance(e, FileNotFoundError) or not root.is_dir():
+        return ""
+    import json
+
+    status = ""
+    try:
+        st = json.loads((root / "status.json").read_text())
+        status = f"; its status.json says {st.get('status')!r}" + (f" ({st['error']})" if st.get("error") else "")
+    except (OSError, ValueError, AttributeError):
+        pass
+    try:
+        names = sorted(p.name + ("/" if p.is_dir() else "") for p in root.iterdir())
+    except OSError:
+        names = []
+    held = ", ".join(names[:8]) + (f", ... ({len(names)} entries)" if len(names) > 8 else "") if names else "nothing"
+    return (f". Expected a dslearn-run output folder: a run folder holds results.csv (written last, beside "
+            f"meta.json, config.yaml and status.json), a sweep folder holds sweep_results.csv or .parquet or job "
+            f"folders with results.csv; or give the path of a results.csv / sweep_results table. "
+            f"{root} holds: {held}{status}")
+
+
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="dslearn-report", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="dslearn-report", description=__doc__.splitlines()[0].replace("``", ""),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="DIR: a run folder of dslearn-run (it holds results.csv), a sweep folder (sweep_results.csv /\n"
+               ".parquet, or job folders with results.csv), or the path of such a table. Writes report.md (open it\n"
+               "first), summary.csv, tables.md / tables.tex, figure.png and each study's own tables and figures.\n"
+               "Exit codes: 0 done, 2 not a run / unreadable / cannot write (one line), 130 Ctrl-C.")
     p.add_argument("dir", help="a run or sweep output directory, or a gathered sweep_results.{parquet,csv}")
     p.add_argument("--out", default=None, help="write the tables/figures here (default: DIR)")
     a = p.parse_args(argv)
@@ -498,7 +536,7 @@ def main(argv: list[str] | None = None) -> None:
             warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.* is deprecated")
             text = report(a.dir, a.out)
     except (FileNotFoundError, NotADirectoryError, IsADirectoryError, DataFormatError) as e:
-        print(f"dslearn-report: {' '.join(str(e).split())}", file=sys.stderr)
+        print(f"dslearn-report: {' '.join(str(e).split())}{_not_a_run(Path(a.dir), e)}", file=sys.stderr)
         raise SystemExit(2)
     except PermissionError as e:
         print(f"dslearn-report: cannot write: {e.filename or e}", file=sys.stderr)

@@ -26,16 +26,33 @@ failure (in a sweep: after every job has run and the table of the finished ones 
 
 from __future__ import annotations
 
-import copy
+import os
+import signal
+import sys
+
+
+def _interrupted_at_start(signum, frame):  # noqa: ARG001
+    os.write(2, b"dslearn-run: interrupted: Ctrl-C before the run started; nothing was written\n")
+    os._exit(130)
+
+
+# Ctrl-C while the console script imports this module: one line and exit 130, not a traceback (main()
+# takes over with its own handling; a module imported by other code keeps the interpreter's handler)
+_SIGINT_BEFORE = None
+if __name__ == "__main__" or os.path.basename(sys.argv[0] if sys.argv else "") == "dslearn-run":
+    try:
+        _SIGINT_BEFORE = signal.signal(signal.SIGINT, _interrupted_at_start)
+    except (ValueError, OSError):  # not the main thread
+        _SIGINT_BEFORE = None
+
+import copy  # noqa: E402
 import datetime as _dt
 import importlib
 import json
 import logging
-import os
 import platform
 import re
 import subprocess
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -45,23 +62,14 @@ from pathlib import Path
 warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.* is deprecated", category=DeprecationWarning)
 warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.* is deprecated", category=FutureWarning)
 
-import hydra  # noqa: E402
-import pandas as pd  # noqa: E402
-from omegaconf import DictConfig, OmegaConf  # noqa: E402
-
+# Start-up cost: this module imports only the standard library and dslearn's light root modules, so
+# that --help, --version, a refused option and a completion request answer at once; Hydra, pandas
+# and the schemas (which import PyTorch, GPyTorch and numba) are imported where work starts
+# (benchmarks/startup.py measures it; tests/test_startup.py keeps it so).
 from dslearn import __version__  # noqa: E402
-from dslearn.schemas.core import CONF_DIR as _CONF_DIR, CONF_DIRS  # noqa: E402
+from dslearn.conf_paths import CONF_DIR as _CONF_DIR, CONF_DIRS  # noqa: E402
 from dslearn.errors import ConfigError, DataFormatError  # noqa: E402
-from dslearn.io import (
-    META_FILE,
-    RESULTS_FILE,
-    RunDirBusy,
-    RunLock,
-    atomic_write_text,
-    check_complete,
-    results_text,
-    sha256_text,
-)
+from omegaconf import DictConfig, OmegaConf  # noqa: E402  (light: ~0.1 s)
 
 log = logging.getLogger("dslearn.run")
 CONF_DIR = str(_CONF_DIR)
@@ -218,6 +226,9 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
 
     Raises :class:`ConfigError` (before any work) for a bad configuration.
     """
+    import pandas as pd
+
+    from dslearn.io import META_FILE, RESULTS_FILE, atomic_write_text, results_text, sha256_text
     from dslearn.schemas.core import validate_config
 
     out_dir = Path(out_dir)
@@ -253,6 +264,9 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
             df.insert(0, col, val)
     text = results_text(df)
     atomic_write_text(out_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    from dslearn.io import ARTIFACTS, write_artifacts
+
+    artifacts = [p.name for p in write_artifacts(out_dir, df.attrs.get(ARTIFACTS))]  # the study's extra files
     jitter = ledger.total
     meta = {
         "dslearn_version": __version__,
@@ -265,6 +279,7 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
         "started_utc": started.isoformat(timespec="seconds"),
         "wall_time_s": round(wall, 3),
         "rows": len(df),
+        "artifacts": artifacts,
         "results_sha256": sha256_text(text),  # completeness marker checked by dslearn.io.check_complete
         "jitter_events": jitter,
         "jitter_max": ledger.total_max,
@@ -281,6 +296,8 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
 
 
 def _write_status(out_dir: Path, status: str, wall: float, **extra) -> None:
+    from dslearn.io import atomic_write_text
+
     try:
         atomic_write_text(out_dir / STATUS_FILE, json.dumps({"status": status, "wall_s": round(wall, 3), **extra}))
     except OSError:
@@ -290,6 +307,7 @@ def _write_status(out_dir: Path, status: str, wall: float, **extra) -> None:
 def _same_job(out_dir: Path, job: dict) -> bool:
     """Whether the result in ``out_dir`` was made with this job's overrides (runtime keys aside)."""
     from dslearn.callbacks import parse_overrides
+    from dslearn.io import META_FILE
 
     try:
         meta = json.loads((out_dir / META_FILE).read_text())
@@ -340,10 +358,20 @@ def _progress_context(enabled: bool):
     return logging_redirect_tqdm(loggers=[logging.getLogger()])
 
 
-@hydra.main(version_base=None, config_path=CONF_DIR, config_name="config")
-def _app(cfg: DictConfig) -> dict:
+def _app() -> None:
+    """The Hydra application (Hydra, and the schemas its configs name, are imported here: where work starts)."""
+    import hydra
+
+    import dslearn.schemas  # noqa: F401  (registers the schemas the task configs name in Hydra's ConfigStore)
+
+    hydra.main(version_base=None, config_path=CONF_DIR, config_name="config")(_hydra_task)()
+
+
+def _hydra_task(cfg: DictConfig) -> dict:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
+
+    from dslearn.io import RunDirBusy, RunLock
 
     hc = HydraConfig.get()
     out_dir = Path(hc.runtime.output_dir)
@@ -371,11 +399,15 @@ def _app(cfg: DictConfig) -> dict:
 
 
 def _run_locked(cfg: DictConfig, out_dir: Path, multirun: bool, job: dict, tag: str, t0: float) -> dict:
+    from dslearn.io import RESULTS_FILE
+
     if cfg.get("progress") is None:
         OmegaConf.set_struct(cfg, False)
         cfg.progress = _progress_default()
         OmegaConf.set_struct(cfg, True)
     if cfg.get("resume"):
+        from dslearn.io import check_complete
+
         ok, why = check_complete(out_dir)
         if ok and not _same_job(out_dir, job):
             ok, why = False, "it holds the result of other overrides (was the grid changed?)"
@@ -420,6 +452,8 @@ def _run_locked(cfg: DictConfig, out_dir: Path, multirun: bool, job: dict, tag: 
         print(console_table(summarize(df)))
         print(f"results: {out_dir / RESULTS_FILE}")
     log.info("%s summary: done, %d rows, wall %.1fs, results %s", tag, len(df), wall, out_dir / RESULTS_FILE)
+    if not multirun:  # the next step: the run's tables and figures
+        print(f"next: dslearn-report {out_dir}", flush=True)
     return {"status": "done", "dir": str(out_dir), "rows": len(df)}
 
 
@@ -504,12 +538,52 @@ def _user_search_dirs(value) -> list[Path]:
     return out
 
 
+#: (group, a name users try) -> (the option meant, what it is): names from the papers that are not file names
+ALIASES = {
+    ("filter", "ekf"): ("default", "the extended information filter (EKF)"),
+    ("filter", "eif"): ("default", "the extended information filter (EKF)"),
+    ("filter", "unscented"): ("ukf", "the unscented filter"),
+}
+
+
+def did_you_mean(word: str, choices, n: int = 3) -> list[str]:
+    """The ``choices`` closest to ``word`` (a misspelling), best first (none when nothing is close)."""
+    import difflib
+
+    choices = [str(c) for c in choices]
+    close = difflib.get_close_matches(str(word), choices, n=n, cutoff=0.6)
+    if not close:  # a prefix or a part of a name (``gp_incr``, ``increment``)
+        w = str(word).lower()
+        close = [c for c in choices if len(w) >= 3 and (c.lower().startswith(w) or w in c.lower())][:n]
+    return close
+
+
 def _check_group_option(group: str, option) -> None:
     opts = _group_options(group)
     if not opts or not isinstance(option, str):
         return
     if str(option) not in opts:
-        raise ConfigError(f"{group}={option!r} is not an option of the config group '{group}'; choose one of {opts}")
+        hint = ""
+        alias = ALIASES.get((group, str(option).lower()))
+        if alias is not None and alias[0] in opts:
+            hint = f"; {alias[1]} is {group}={alias[0]}"
+        else:
+            close = did_you_mean(str(option), opts)
+            if close:
+                hint = "; did you mean " + " or ".join(f"{group}={c}" for c in close) + "?"
+        raise ConfigError(f"{group}={option!r} is not an option of the config group '{group}'; "
+                          f"choose one of {opts}{hint}")
+
+
+def _sweep_values(o) -> list:
+    """The values of a choice sweep override (``group=a,b``), ``[]`` for other sweeps (range, glob)."""
+    try:
+        from hydra.core.override_parser.types import ChoiceSweep
+
+        v = o.value()
+        return [str(x) for x in v.list] if isinstance(v, ChoiceSweep) else []
+    except Exception:  # noqa: BLE001
+        return []
 
 
 def _hydra_message(e: Exception) -> str:
@@ -681,6 +755,8 @@ def sweep_combinations(argv: list[str]) -> tuple[list[list[str]], bool, DictConf
     from hydra.core.global_hydra import GlobalHydra
     from hydra.types import RunMode
 
+    import dslearn.schemas  # noqa: F401  (the task configs name the schemas' ConfigStore entries)
+
     overrides = [a for a in argv if not a.startswith("-")]
     parsed = _parse_all(overrides)
     user = [o for o in parsed if not o.key_or_group.startswith("hydra")]
@@ -795,6 +871,11 @@ def validate_job(cfg: DictConfig, lines=()) -> None:
     if lines and "task" in cfg and cfg.task is not None and cfg.task.get("name") is not None:
         check_overrides(cfg, override_keys(lines))
     validate_config(cfg)
+    device = cfg.get("device")
+    if device is not None and str(device).startswith("cuda"):  # here, not in the run: no run folder for it
+        from dslearn.compose import resolve_device
+
+        resolve_device(str(device))
 
 
 def sweep_select(master: DictConfig):
@@ -840,14 +921,29 @@ def _friendly(e: Exception, cfg: DictConfig | None = None) -> str:
     m = re.search(r"Could not override '([^']+)'", msg)
     if m:
         key = m.group(1)
-        known = ""
-        parent = key.rsplit(".", 1)[0] if "." in key else None
-        if cfg is not None:
-            node = OmegaConf.select(cfg, parent, default=None) if parent else cfg
-            if isinstance(node, DictConfig):
-                known = f" (known keys{' of ' + parent if parent else ''}: {sorted(str(k) for k in node.keys())})"
-        return f"{key}: no such key in the configuration{known}; to add a new key write +{key}=..."
+        return _unknown_key(key, cfg)
     return msg
+
+
+def _unknown_key(key: str, cfg) -> str:
+    """An override of a key the configuration does not have: the closest keys (full paths, each a
+    working override) and the keys that are there. No ``+key`` is suggested: the schemas refuse keys
+    they do not define, so adding one would fail too."""
+    parent, _, leaf = key.rpartition(".")
+    node = None
+    if cfg is not None:
+        try:
+            node = OmegaConf.select(cfg, parent, default=None) if parent else cfg
+        except Exception:  # noqa: BLE001
+            node = None
+    if not isinstance(node, DictConfig):
+        return f"{key}: no such key in the configuration"
+    keys = sorted(str(k) for k in node.keys())
+    where = f" of {parent}" if parent else ""
+    close = did_you_mean(leaf, [k for k in keys if k != "hydra"])
+    hint = ("; did you mean " + " or ".join(f"{parent + '.' if parent else ''}{c}=..." for c in close) + "?"
+            if close else "")
+    return f"{key}: no such key in the configuration (known keys{where}: {keys}){hint}"
 
 
 def precheck(argv: list[str], plan: dict | None = None) -> str | None:
@@ -890,8 +986,12 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
                 _check_launcher(str(o.value()))
             elif o.key_or_group.startswith("hydra/"):
                 continue
-            elif _is_group(o.key_or_group) and not o.is_sweep_override() and not o.is_delete():
-                _check_group_option(o.key_or_group, o.value())
+            elif _is_group(o.key_or_group) and not o.is_delete():
+                for v in (_sweep_values(o) if o.is_sweep_override() else [o.value()]):
+                    _check_group_option(o.key_or_group, v)
+        # the cheap checks are done: now the task schemas (they import PyTorch) and the composition
+        import dslearn.schemas  # noqa: F401  (registers the schemas the task configs name in Hydra's ConfigStore)
+
         with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
             combos, multirun, master = sweep_combinations(argv)
             seeded = {}
@@ -980,6 +1080,8 @@ def lock_run_dir(argv: list[str], run_dir: str | None) -> tuple[list[str], RunLo
         if line is None:
             return argv, None
         out = [a for i, a in enumerate(argv) if i not in given] + [line]
+    from dslearn.io import RunLock
+
     lock = RunLock(run_dir).acquire()
     _PRELOCKED[os.path.abspath(run_dir)] = lock
     return out, lock
@@ -1077,8 +1179,76 @@ def help_text(width: int = 100) -> str:
         "",
         f"more: {PROG} --cfg job [overrides] prints the composed config; --hydra-help lists Hydra's own options;",
         f"      {PROG} --version prints dslearn's version. Exit codes: 0 ok, 2 bad input, 130 Ctrl-C, 1 other.",
+        f"      filter=default is the EKF (filter=ukf the UKF). TAB completion in bash: eval \"$({PROG} -sc install=bash)\"",
     ]
     return "\n".join(out)
+
+
+# --------------------------------------------------------------------------------------------
+# shell completion (``eval "$(dslearn-run -sc install=bash)"``): the common requests answered here
+
+
+_APP_ARGS = re.compile(r"^\s*[\w_\-=\./]+\s*(.*)")  # Hydra's: the line without the program's name
+_FILE_PREFIXES = (".", "/", "\\")
+
+
+def _root_words() -> list[str]:
+    """What completes an empty word at the root without composing: the config groups (``group=``; Hydra's
+    ``hydra`` and the schemas' ``schema``, groups of groups and options), the root keys (``key=``) and the
+    root nodes (``group.``, ``hydra.``)."""
+    defaults = _defaults()
+    out = {"hydra", "schema", "hydra."}
+    for d in CONF_DIRS:
+        for g in d.iterdir() if d.is_dir() else ():
+            if g.is_dir() and not g.name.startswith(("_", ".")) and any(g.glob("*.yaml")):
+                out.add(f"{g.name}=")
+    for g, opt in defaults.items():
+        if opt not in ("null", "None") and not g.startswith(("override ", "hydra", "_")):
+            out.add(f"{g}.")
+    try:
+        root = OmegaConf.load(Path(CONF_DIR) / "config.yaml")
+    except Exception:  # noqa: BLE001
+        return sorted(out)
+    for k in root.keys():
+        if str(k) not in ("defaults", "hydra"):
+            out.add(f"{k}.") if OmegaConf.is_config(root._get_node(k)) else out.add(f"{k}=")
+    return sorted(out)
+
+
+def light_completion(argv: list[str], line: str | None) -> list[str] | None:
+    """The answer to a completion request (``-sc query=bash``, the shell's line in ``COMP_LINE``) where
+    it needs no composed configuration: a group's options (``model=g`` -> ``model=gp ...``) and a first
+    word at the root (groups and root keys), as Hydra's completion gives them. ``None``: Hydra answers
+    (keys under a node, values, files, a line that chooses an experiment or a method preset, or adds or
+    deletes keys)."""
+    if len(argv) != 2 or argv[0] not in ("-sc", "--shell-completion") or argv[1] not in ("query=bash", "query=zsh"):
+        return None
+    if line is None:
+        return None
+    m = _APP_ARGS.match(line)
+    if not m:
+        return None
+    rest = m.group(1)
+    words = rest.split()
+    if any(w.startswith("-") and w not in _MULTIRUN_FLAGS for w in words):
+        return None
+    words = [w for w in words if w not in _MULTIRUN_FLAGS]
+    new_word = len(rest) == 0 or rest[-1] == " "
+    word = "" if new_word or not words else words[-1]
+    before = words if new_word else words[:-1]
+    if any(w.startswith(("+", "~", "hydra")) or w.split("=")[0] in ("experiment", "method") for w in before):
+        return None
+    if word.startswith(("+", "~")) or "/" in word.split("=")[0]:
+        return None
+    if "=" in word:
+        key, _, value = word.partition("=")
+        if "." in key or key.startswith("hydra") or not _is_group(key) or key == "schema" or \
+                value.lower().startswith(_FILE_PREFIXES):
+            return None
+        return sorted(f"{key}={o}" for o in _group_options(key) if f"{key}={o}".startswith(word))
+    if "." in word:
+        return None
+    return [w for w in _root_words() if w.startswith(word)]
 
 
 def version_text() -> str:
@@ -1103,11 +1273,17 @@ def main(argv: list[str] | None = None) -> None:
         if "--version" in argv:
             print(version_text())
             return
+        answer = light_completion(argv, os.environ.get("COMP_LINE"))
+        if answer is not None:
+            print(" ".join(answer))
+            return
         plan: dict = {}
         err = precheck(argv, plan)
         if err is not None:
             _say("configuration error", err)
             raise SystemExit(2)
+        from dslearn.io import RunDirBusy
+
         try:
             hydra_argv, held = lock_run_dir(argv, plan.get("run_dir"))
         except RunDirBusy as e:  # before Hydra wrote anything into the folder
@@ -1141,6 +1317,9 @@ def main(argv: list[str] | None = None) -> None:
         _say("interrupted", f"{what} before the run started; nothing was written")
         raise SystemExit(143 if isinstance(e, Terminated) else 130) from None
 
+
+if _SIGINT_BEFORE is not None:  # imported: KeyboardInterrupt again, handled by main()
+    signal.signal(signal.SIGINT, _SIGINT_BEFORE)
 
 if __name__ == "__main__":
     main()

@@ -310,9 +310,86 @@ def precheck(argv: list[str]) -> tuple[str, str] | None:
     return None
 
 
+def _yaml_keys(path: Path) -> list[tuple[str, str, str]]:
+    """``(key, value, comment)`` of each top-level ``key: value  # comment`` line of a config file."""
+    import re
+
+    out = []
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return out
+    for ln in lines:
+        m = re.match(r"^([a-z_]+):\s*([^#]*?)\s*(?:#\s*(.*))?$", ln)
+        if m and m.group(1) not in ("defaults", "hydra") and m.group(2):
+            out.append((m.group(1), m.group(2), m.group(3) or ""))
+    return out
+
+
+def help_text(width: int = 100) -> str:
+    """``dslearn-train-lstm --help``: what it does, its keys (with defaults), the data sets, outputs."""
+    from dslearn import __version__
+
+    conf = Path(CONF_DIR)
+
+    def line(name: str, text: str, indent: int = 2, col: int = 28) -> str:
+        import textwrap
+
+        head = " " * indent + name
+        parts = textwrap.wrap(text, max(20, width - col)) or [""]
+        if len(head) >= col:  # a long key=value: its text on the next lines
+            return "\n".join([head] + [" " * col + p for p in parts if p])
+        return "\n".join([(head + " " * (col - len(head)) + parts[0]).rstrip()] + [" " * col + p for p in parts[1:]])
+
+    out = [
+        f"{PROG} {__version__}: train one LSTM encoder-decoder or Social-LSTM on ETH/UCY windows and save",
+        "a checkpoint (for model=lstm / model=social_lstm and the ETH/UCY studies).",
+        "",
+        "usage:",
+        f"  {PROG} [key=value ...]",
+        "",
+        "examples:",
+        f"  {PROG}                          the paper's defaults (obs 2, pred 10, 50 epochs, batch 8)",
+        f"  {PROG} lstm.schedule=early_stopping lstm.epochs=200 lstm.patience=10",
+        "                                              stop on the loss of val_scenes, keep the best weights",
+        f"  {PROG} lstm.pooling=social lstm.epochs=5 train_scenes=[zara1,zara2] val_scenes=[zara3] \\",
+        "      checkpoint=slstm.pt                     a Social-LSTM on two scenes, validated on a third",
+        "",
+        "keys (key=value; default shown):",
+    ]
+    out += [line(f"{k}={v}", c) for k, v, c in _yaml_keys(conf / "train_lstm.yaml")]
+    out += ["", "network and schedule (lstm.<key>=value; conf/lstm/default.yaml):"]
+    out += [line(f"lstm.{k}={v}", c) for k, v, c in _yaml_keys(conf / "lstm" / "default.yaml")]
+    scenes = sorted(p.stem for p in (conf / "dataset").glob("*.yaml"))
+    out += [
+        "",
+        "data sets (train_scenes / val_scenes name them): " + ", ".join(scenes),
+        "  their files are read from data_root, else $DSLEARN_ETHUCY_ROOT, else ../shared/data/eth_ucy beside",
+        "  the repository; add a data set with +dataset@datasets.<name>=<name> (a YAML in conf/dataset/).",
+        "",
+        "outputs: outputs/train_lstm/<date_time>/ (or hydra.run.dir=DIR): the checkpoint (lstm_<pooling>.pt,",
+        "  or checkpoint=PATH; load with dslearn.models.lstm.load_checkpoint) and history.csv (loss per epoch).",
+        "",
+        f"more: {PROG} --cfg job [overrides] prints the composed config; --hydra-help lists Hydra's own options.",
+        "Exit codes: 0 ok, 2 bad input (one line naming the key, before any work), 130 Ctrl-C, 1 other.",
+    ]
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> None:
     """The ``dslearn-train-lstm`` console script (``argv`` defaults to ``sys.argv[1:]``)."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    if any(a in ("--help", "-h") for a in argv):
+        try:
+            print(help_text())
+        except BrokenPipeError:  # e.g. | head
+            sys.stdout = open(os.devnull, "w")
+        return
+    if "--version" in argv:
+        from dslearn import __version__
+
+        print(f"{PROG} (dslearn) {__version__}")
+        return
     err = precheck(argv)
     if err is not None:
         _say(*err)

@@ -304,6 +304,7 @@ def test_busy_run_folder_is_refused_and_stale_lock_taken_over(tmp_path):
     code, out, err = cli(["model=lin", "data.train_episodes=0", "data.test_episodes=1", "print_table=false", f"hydra.run.dir={run}"])
     assert code == 0 and (run / "results.csv").is_file(), err
     assert json.loads((run / "status.json").read_text())["status"] == "done"
+    assert out.splitlines()[-1] == f"next: dslearn-report {run}"  # a single run ends with the next step
 
 
 # ------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from hydra.utils import get_object
 from omegaconf import OmegaConf
 
 from dslearn.compose import build, build_fusion, build_motion_model, build_network, build_observation, build_scenario
+from dslearn.data.ethucy import data_available as ethucy_data_available
 from dslearn.schemas.core import CONF_DIR, validate_config
 from dslearn.models.base import MotionModel, ObservationModel
 
@@ -145,6 +146,24 @@ def _check_filter(option, cfg, world):
         assert get_object(cfg.filter._target_) is DGPTMethod and "predict" not in cfg.filter
         assert (cfg.filter.window, cfg.filter.gp_input, cfg.filter.hyper.optimizer) == (10, "temporal", "adam")
         return
+    if option in ("fg_ekf", "rbpf_em"):  # Jiang's FG + EKF-FG, Braga's RBPF + online EM: the studies' values
+        from dslearn.methods.factor_graph import FactorGraphMethod
+        from dslearn.methods.rbpf import RBPFMethod
+
+        f = cfg.filter
+        assert get_object(f._target_) is {"fg_ekf": FactorGraphMethod, "rbpf_em": RBPFMethod}[option]
+        assert "predict" not in f
+        if option == "fg_ekf":  # conf/task/jiang_fg.yaml: max_iter, scenario.initial_state, fg, tracker
+            task = _compose("experiment=jiang_fg").task
+            assert f.iterations == task.max_iter and list(f.initial_state) == list(task.scenario.initial_state)
+            assert f.fg == task.fg and f.tracker == task.tracker
+        else:  # conf/task/braga_tbn.yaml: particles, filter noise, resampling, EM, initial modes, kernel
+            task = _compose("experiment=braga_tbn").task
+            assert (f.num_particles, f.process_noise, f.ess_threshold, f.regularise) == (
+                task.num_particles, task.process_noise, task.ess_threshold, task.resampling.regularise)
+            assert f.em == task.em and f.backward_kernel == task.backward_kernel
+            assert {k: f.modes[k] for k in f.modes} == {k: task.modes[k] for k in ("mu_init", "sigma_init", "pi_init")}
+        return
     f = cfg.filter  # ukf inherits the priors and the learning gate of the default
     assert (f.prior_pos_std, f.prior_vel_std, f.learn_gate_std) == (1000.0, 1000.0, 2.0)
     step = build_predict(cfg)
@@ -243,6 +262,16 @@ AGGREGATIONS = {"poe", "gpoe", "bcm", "rbcm"}
 def _check_consensus(option, cfg, world):  # L = 4 rounds of the paper's weights; hybrid_nodes: omega = S
     _, _, network = world
     c = cfg.consensus
+    if option == "statistics":  # Braga et al.'s cooperation on sufficient statistics: 10 rounds, Eq. 26 weights
+        from dslearn.fusion.weights import half_max_degree
+
+        f = build_fusion(c, network)
+        assert type(f).__name__ == "StatisticsConsensus" and f.kind == "statistics"
+        assert (f.strategy, f.iterations, f.rule, f.name) == ("consensus_10", 10, "half_max_degree", "consensus_10")
+        w = half_max_degree(network.adjacency.to(torch.bool))
+        torch.testing.assert_close(f.weights, w, rtol=0, atol=0)
+        torch.testing.assert_close(f.matrix(), torch.linalg.matrix_power(w, 10), rtol=1e-12, atol=1e-15)
+        return
     if option in AGGREGATIONS:  # an aggregation rule: the rule it names, raw Eq. 7 weights
         f = build_fusion(c, network)
         assert type(f).__name__ == "AggregationRule" and f.kind == "aggregation"
@@ -291,6 +320,42 @@ def _check_scenario(option, cfg, world):
         assert sc.area == (-500.0, 500.0, -500.0, 500.0) and bool((net.positions.abs() <= 500.0).all())
         assert cfg.scenario.trajectory._target_ == f"dslearn.sim.manoeuvres.generate_{option[4:]}"
         return
+    if option in ("eth_zara1", "corridor"):  # a recorded data set: 2 pedestrians, 4 LiDARs around its extent
+        cfg = _compose("task=matrix", "method=ekf_lin_hybrid", f"scenario={option}")
+        files = {"eth_zara1": ["crowds_zara01.txt"], "corridor": ["corridor.txt"]}[option]
+        assert list(cfg.scenario.dataset.files) == files and cfg.scenario.name == option
+        if option == "eth_zara1" and not ethucy_data_available():
+            pytest.skip("the ETH/UCY data are absent")
+        sc = build_scenario(cfg)
+        spec, net = sc.spec, sc.network
+        assert (spec.name, spec.measurement, spec.num_agents, spec.state, spec.dt, spec.steps, spec.source) == \
+            (option, "position", 2, "pv2d", 0.4, 11, "recorded")
+        assert (net.num_nodes, int(net.is_sensor.sum()), net.sensing_range, net.meas_std) == (4, 4, 8.0, 0.2)
+        pools = {"eth_zara1": (233, 37), "corridor": (71, 28)}[option]
+        assert (sc.pool_size("train"), sc.pool_size("test")) == pools
+        return
+    if option in ("jiang", "braga"):  # Jiang's and Braga's settings as matrix scenarios: the studies' values
+        method = {"jiang": "fg_ekf", "braga": "rbpf_em"}[option]
+        cfg = _compose("task=matrix", f"method={method}", f"scenario={option}")
+        sc = build_scenario(cfg)
+        spec = sc.spec
+        if option == "jiang":  # conf/task/jiang_fg.yaml task.scenario, num_samples, sigma_y
+            task = _compose("experiment=jiang_fg").task
+            assert (spec.name, spec.measurement, spec.num_agents, spec.state, spec.dt, spec.steps, spec.networked) == \
+                ("jiang", "squared_range", 1, "param2d", 1.0, task.scenario.num_timings - 1, False)
+            assert sc.sensors.tolist() == task.scenario.sensors and sc.coefficients.tolist() == task.scenario.coefficients
+            assert (sc.drive_var, sc.num_samples, sc.sigma_y) == (task.scenario.drive_var, task.num_samples, task.sigma_y)
+            assert (sc.network.num_sensors, sc.network.meas_std) == (3, task.sigma_y)
+        else:  # conf/task/braga_tbn.yaml: steps, dt, the flights, the true modes, the map, the graph
+            task = _compose("experiment=braga_tbn").task
+            assert (spec.name, spec.measurement, spec.num_agents, spec.state, spec.dt, spec.steps, spec.networked) == \
+                ("braga", "terrain_altitude", 4, "platform", task.dt, task.steps, True)
+            for key in ("truth_process_noise", "v0", "start", "formation_spacing", "terrain"):
+                assert cfg.scenario[key] == task[key], key
+            for key in ("mu_true", "sigma_true", "pi_true"):
+                assert cfg.scenario[key] == task.modes[key], key
+            assert cfg.scenario.edges == task.network.edges and int(sc.network.adjacency.sum()) == 6
+        return
     # a Liu et al. scenario: restricts the study to its generator, run with task.scenario_params.<option>
     cfg = _compose(*LIU, f"scenario={option}")
     target = f"dslearn.sim.manoeuvres.generate_{option}"
@@ -306,6 +371,10 @@ PRESET_FUSIONS = {"individual", "hybrid", "centralized"}
 def _check_method(option, cfg, world):
     """A preset selects the parts its name says: <filter>_<model>_<fusion> (dgpt_<aggregation rule>)."""
     head, _, rest = option.partition("_")
+    if option in ("fg_ekf", "rbpf_em"):  # Jiang's / Braga's method: its filter option (and the statistics part)
+        assert cfg.filter == _compose(f"filter={option}").filter
+        assert option == "fg_ekf" or cfg.consensus == _compose("consensus=statistics").consensus
+        return
     filt = _compose(f"filter={PRESET_FILTERS[head]}").filter
     assert cfg.filter == filt  # the filter option, every key
     if head == "dgpt":
@@ -322,12 +391,13 @@ CHECKS = {"data": _check_data, "method": _check_method, "dataset": _check_datase
           "observation": _check_observation, "consensus": _check_consensus, "network": _check_network,
           "scenario": _check_scenario}
 EXPECTED_OPTIONS = {"data": {"paper", "small"}, "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
-                    "task": set(TASKS), "filter": {"default", "ukf", "dgpt"},
+                    "task": set(TASKS), "filter": {"default", "ukf", "dgpt", "fg_ekf", "rbpf_em"},
                     "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
-                    | {"dgpt_gpoe", "dgpt_rbcm"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
-                    "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS,
+                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
+                    "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
                     "network": {"yu", "yu_blind"},
-                    "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3"}}
+                    "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1",
+                                 "corridor", "jiang", "braga"}}
 
 
 def test_every_option_has_its_expected_values():
@@ -429,7 +499,7 @@ def test_observation_model_contract(option, yu_world):
 
 
 # --------------------------------------------------------------------------------------- fusion
-@pytest.mark.parametrize("option", [o for o in _options("consensus") if o not in AGGREGATIONS])
+@pytest.mark.parametrize("option", [o for o in _options("consensus") if o not in AGGREGATIONS | {"statistics"}])
 def test_fusion_contract(option, yu_world):
     """Every fusion: row-stochastic weights (doubly stochastic for the symmetric rules; the paper's
     uniform 1/(|N_i|+1) rule is not); SPD symmetric fused information; when every node
@@ -457,7 +527,7 @@ def test_fusion_contract(option, yu_world):
 
 
 # ---------------------------------------------------------------------------- filter: predict
-@pytest.mark.parametrize("option", [o for o in _options("filter") if o != "dgpt"])  # dgpt: no prediction step
+@pytest.mark.parametrize("option", [o for o in _options("filter") if o not in ("dgpt", "fg_ekf", "rbpf_em")])  # no prediction step
 def test_predict_step_contract(option, yu_world):
     """Every prediction step equals the Kalman prediction for the linear (constant-velocity) model."""
     from dslearn.compose import build_predict

@@ -34,6 +34,18 @@ def test_pyproject_lists_every_package_and_the_configs():
             assert any(rel.match(p) for p in patterns) and len(rel.parts) <= 2, f"conf/{rel} would not ship"
 
 
+@pytest.mark.skipif(tomllib is None, reason="tomllib needs Python >= 3.11")
+def test_shipped_data_sets_are_package_data():
+    """Every file of a data folder inside a package (a scenario's ``pkg://dslearn.data/<folder>`` root) ships."""
+    patterns = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["dslearn.data"]
+    data = ROOT / "dslearn" / "data"
+    files = [f for f in data.rglob("*") if f.is_file() and f.parent != data and "__pycache__" not in f.parts]
+    assert any(f.name == "corridor.txt" for f in files)
+    for f in files:
+        rel = f.relative_to(data)
+        assert any(rel.match(p) for p in patterns), f"dslearn/data/{rel} would not ship"
+
+
 def test_packaged_config_folder_is_the_one_composed():
     assert (CONF_DIR / "config.yaml").is_file() and (CONF_DIR / "experiment" / "yu_table1.yaml").is_file()
 

@@ -3,6 +3,7 @@ figure of any sweep (numbers checked against closed forms), report.md as the fil
 
 import contextlib
 import io
+import json
 
 import numpy as np
 import pandas as pd
@@ -57,7 +58,7 @@ def test_console_table_sets_the_sensor_average_apart():
     assert set(lines[-2].replace(" ", "")) == {"-"}  # a rule before the average row
     assert lines[-1].startswith(AVG_LABEL)
     # the papers' Average row: mean of the sensor means (1.1 and 3.1), mean of their stds (0.1)
-    assert "2.100 ± 0.100" in lines[-1]
+    assert "2.10 ± 0.100" in lines[-1]  # 3 significant digits
     assert "avg" not in "\n".join(lines[3:])
 
 
@@ -127,11 +128,13 @@ def test_report_of_a_single_run_dir(make_cfg, tmp_path):
     from dslearn.run import execute
 
     execute(make_cfg("model=lin", "data.train_episodes=0", "data.test_episodes=2", "study=unit"), tmp_path / "r")
+    assert json.loads((tmp_path / "r" / "meta.json").read_text())["artifacts"] == ["tracks.npz"]
     text = report(tmp_path / "r")
-    assert "Table I" in text
-    assert (tmp_path / "r" / "figure.png").is_file()
+    assert "Table I" in text and "](tracking.png)" in text
+    # the study's tracking figure, not the generic figure of one bar per panel
+    assert (tmp_path / "r" / "tracking.png").is_file() and not (tmp_path / "r" / "figure.png").exists()
     written = {p.name for p in report.written}
-    assert {"report.md", "summary.csv", "figure.png", "yu_table1.csv", "yu_table1.md"} <= written
+    assert {"report.md", "summary.csv", "tracking.png", "yu_table1.csv", "yu_table1.md"} <= written
 
 
 def _two_sensor_results():
@@ -169,11 +172,11 @@ def test_paper_shaped_cells_by_hand():
     # std sqrt((.04 + .04 + .16)/2) = sqrt(0.12)
     m = (0.3 + 0.5) / 2
     sd = (np.sqrt(0.07) + np.sqrt(0.12)) / 2
-    assert tab.loc[("individual", AVG_LABEL), "lin"] == f"{m:.2f} ± {sd:.2f}" == "0.40 ± 0.31"
+    assert tab.loc[("individual", AVG_LABEL), "lin"] == f"{m:.3f} ± {sd:.3f}" == "0.400 ± 0.305"  # 3 significant digits
     # gp_increment hybrid: sensor1 0.07 ± 0.02, sensor2 0.08 ± sqrt(0.0012) -> 0.075 ± 0.0273
     m = (0.07 + 0.08) / 2
     sd = (0.02 + np.sqrt(((0.06 - 0.08) ** 2 * 2 + 0.04 ** 2) / 2)) / 2
-    assert tab.loc[("hybrid (ω=1), L=4", AVG_LABEL), "gp_increment"] == f"{m:.3f} ± {sd:.3f}" == "0.075 ± 0.027"
+    assert tab.loc[("hybrid (ω=1), L=4", AVG_LABEL), "gp_increment"] == f"{m:.4f} ± {sd:.4f}" == "0.0750 ± 0.0273"
     # the other spread: per-episode sensor average (0.2, 0.25, 0.75) -> std over episodes
     avg_row = s[(s.node == "avg") & (s.model == "lin") & (s.metric == "track_err")].iloc[0]
     assert avg_row["std_of_sensor_avg"] == pytest.approx(np.std([0.2, 0.25, 0.75], ddof=1))
@@ -182,5 +185,5 @@ def test_paper_shaped_cells_by_hand():
     m = (0.5 + 0.2) / 2
     sd = (np.sqrt(((0.2 - 0.5) ** 2 + (0.4 - 0.5) ** 2 + (0.9 - 0.5) ** 2) / 2) + 0.1) / 2
     col = [c for c in pred.columns if c.startswith("gp_increment (con.")]
-    assert len(col) == 1 and pred.loc[AVG_LABEL, col[0]] == f"{m:.2f} ± {sd:.2f}"
-    assert pred.loc[AVG_LABEL, "lin"] == "1.20 ± 0.20"
+    assert len(col) == 1 and pred.loc[AVG_LABEL, col[0]] == f"{m:.3f} ± {sd:.3f}"
+    assert pred.loc[AVG_LABEL, "lin"] == "1.20 ± 0.200"

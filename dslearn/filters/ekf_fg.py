@@ -64,7 +64,9 @@ def ekf_fg_step(
     x_pred: Tensor | None = None, P_pred: Tensor | None = None,
 ) -> TrackState:
     """Refinement and gradient update for one timing (the prediction may be passed in)."""
-    if x_pred is None or P_pred is None:
+    if (x_pred is None) != (P_pred is None):
+        raise ValueError("ekf_fg_step: pass the prediction as both x_pred and P_pred, or neither (then it predicts)")
+    if x_pred is None:
         x_pred, P_pred = predict(state, process_var)
     x_new, P_new = refine(x_pred, P_pred, obs_mean, obs_var)
     v_new, Pv_new = update_gradient(state, x_new, P_new, gradient_var)

@@ -84,7 +84,9 @@ def systematic_indices(logw: Tensor, gen: torch.Generator | Streams | None = Non
     if u0 is None:
         u0 = rand((*logw.shape[:-1], 1), gen, dtype=logw.dtype, device=logw.device)
     u = (u0 + torch.arange(n, dtype=logw.dtype, device=logw.device)) / n
-    return torch.searchsorted(cw.contiguous(), u.contiguous()).clamp_max(n - 1)
+    # right=True: a uniform equal to a cumulative weight takes the next particle, never one of zero weight
+    # before it; the clamp covers a uniform that rounds up to the total
+    return torch.searchsorted(cw.contiguous(), u.contiguous(), right=True).clamp_max(n - 1)
 
 
 def regularisation_bandwidth(n: int, d: int) -> float:

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import pandas as pd
 import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
@@ -62,7 +63,7 @@ class DistributedFilter:
         if model.learns_offline:  # declared supervised: learns from the training episodes' true tracks
             model.fit_offline(train.states, ctx.dt, seed=seed)
         if learner.learnable:
-            learner.run(train.measurements, [len(train)], lambda k: None)
+            learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())  # no evaluation at checkpoints
         res = learner.estimate(test)
         return beliefs_to_estimates(res.mean, res.info, network)
 

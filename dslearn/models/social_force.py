@@ -85,7 +85,12 @@ class SocialForce(MotionModel):
     def for_scenario(cls, noise_std: float = 1e-3, *, scenario, device=None) -> "SocialForce":
         """The config factory (``conf/model/sfm.yaml``): the true model, with the simulation's
         parameters (``scenario.sfm``) and the configured process noise."""
-        s = scenario.sfm
+        s = getattr(scenario, "sfm", None)
+        if s is None:
+            name = getattr(getattr(scenario, "spec", None), "name", type(scenario).__name__)
+            raise ConfigError(f"model=sfm is the true social-force model of a simulated crowd: it takes the scenario's "
+                              f"social-force parameters, which scenario {name} does not have (model=sfm_fit fits them "
+                              f"to training tracks)")
         return cls(s.desired.tolist(), s.tau.tolist(), s.alpha.tolist(), s.beta.tolist(), noise_std, s.softening).to(device)
 
     def __init__(

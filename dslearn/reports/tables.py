@@ -10,6 +10,35 @@ import pandas as pd
 AVG_LABEL = "sensor average"
 
 
+#: significant digits of the numbers in the tables
+DIGITS = 3
+
+
+def sig(value: float, digits: int = DIGITS) -> str:
+    """``value`` with ``digits`` significant digits, trailing zeros kept (``0.0750``, ``1.20``, ``123``,
+    ``1230`` for 1234.5), scientific below 0.001 and from 100 000 on (``1.23e-04``); ``-`` for a missing
+    value (NaN, None)."""
+    import math
+
+    if value is None:
+        return "-"
+    v = float(value)
+    if math.isnan(v):
+        return "-"
+    if math.isinf(v) or v == 0:
+        return str(v) if math.isinf(v) else "0"
+    r = float(f"{v:.{digits - 1}e}")  # rounded first: 0.9996 -> 1.00, not 1.000
+    e = math.floor(math.log10(abs(r)))
+    if e < -3 or e >= 5:
+        return f"{v:.{digits - 1}e}"
+    return f"{r:.{max(0, digits - 1 - e)}f}"
+
+
+def mean_std(mean: float, std: float, digits: int = DIGITS) -> str:
+    """A table cell ``mean ± std``, each with ``digits`` significant digits (:func:`sig`)."""
+    return f"{sig(mean, digits)} ± {sig(std, digits)}"
+
+
 def save_figure(fig, path: Path, dpi: int = 120) -> Path:
     """Lay out ``fig``, write it to ``path`` (creating its folder) and close it; return ``path``."""
     import matplotlib.pyplot as plt

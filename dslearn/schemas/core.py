@@ -346,7 +346,8 @@ def validate_config(cfg: DictConfig) -> None:
 DISTRIBUTED_FILTER = "dslearn.methods.distributed.DistributedFilter"
 #: what a fusion part of each kind is, for the messages
 FUSION_KINDS = {"information": "an information-form fusion of the distributed filter",
-                "aggregation": "a GP aggregation rule of a fusion centre (Liu et al.'s DGPT)"}
+                "aggregation": "a GP aggregation rule of a fusion centre (Liu et al.'s DGPT)",
+                "statistics": "a cooperation on sufficient statistics (Braga et al.'s RBPF + online EM)"}
 
 
 def _target_class(target: str):

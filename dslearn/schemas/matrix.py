@@ -16,6 +16,23 @@ from dslearn.schemas.base import register_task
 from dslearn.studies.matrix import MatrixSettings
 
 
+def _register_sweeper() -> None:
+    """Make the matrix sweeper (``hydra/sweeper=matrix``) known to Hydra also where Hydra's scan of the
+    ``hydra_plugins`` namespace misses it: in an editable install (``pip install -e .``) setuptools serves the
+    package through an import hook the scan cannot list, and ``dslearn-run`` started from any folder would
+    not find the sweeper. Hydra's scan runs first: it executes the modules it loads anew, and a sweeper class
+    imported before it would subclass a stale copy of Hydra's basic sweeper."""
+    from hydra.core.plugins import Plugins
+
+    plugins = Plugins.instance()
+    from hydra_plugins.dslearn_matrix.matrix_sweeper import MatrixSweeper
+
+    plugins.register(MatrixSweeper)
+
+
+_register_sweeper()
+
+
 @dataclass(frozen=True)
 class Cell:
     """A composed matrix cell: its row (the method's label), its column (the scenario's name), the unit of
@@ -62,7 +79,15 @@ def misfit(cfg: DictConfig) -> str | None:
     ``None`` where it fits or ``cfg`` is not a matrix cell."""
     if str(cfg.task.get("name")) != "matrix":
         return None
-    return _sentence(cell(cfg))
+    try:
+        return _sentence(cell(cfg))
+    except ConfigError:
+        raise  # a bad value: the configuration's error, not a verdict on the cell
+    except Exception as e:  # noqa: BLE001 - a part that cannot be sized for this scenario (as judge and select_cells)
+        spec = _MetaSlots(cfg)["scenario"].spec
+        parts = ", ".join(f"{g} {cfg[g].get('name', cfg[g].get('_target_'))}" for g in ("filter", "model", "consensus")
+                          if g in cfg and cfg[g] is not None)
+        return f"the method ({parts}) does not fit scenario {spec.name}: its parts cannot be built for it: {_one_line(e)}"
 
 
 def _one_line(e: BaseException) -> str:

@@ -38,18 +38,19 @@ def scene_extent(xy: Tensor) -> tuple[float, float, float, float]:
     return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
 
 
-def perimeter_positions(extent: Sequence[float], num_sensors: int = 4, margin: float = 0.0) -> Tensor:
+def perimeter_positions(extent: Sequence[float], num_sensors: int = 4, margin: float = 0.0,
+                        key: str = "task.network") -> Tensor:
     r"""``(S, 2)`` sensor positions around ``extent = (xmin, xmax, ymin, ymax)``.
 
     Sensor ``i`` sits at ``centre + (1 + margin) (w/2 cos θ_i, h/2 sin θ_i)`` with
-    :math:`\theta_i = -\pi/2 + 2\pi i / S`.
+    :math:`\theta_i = -\pi/2 + 2\pi i / S`. ``key``: the config key of these settings (named in errors).
     """
     xmin, xmax, ymin, ymax = (float(v) for v in extent)
     if not (xmax > xmin and ymax > ymin):
         raise ConfigError(f"scene extent {tuple(extent)} must have positive width and height")
     if num_sensors < 1:
-        raise ConfigError(f"task.network.num_sensors={num_sensors} must be >= 1")
-    check_positive("task.network.margin", margin, strict=False)
+        raise ConfigError(f"{key}.num_sensors={num_sensors} must be >= 1")
+    check_positive(f"{key}.margin", margin, strict=False)
     cx, cy = (xmin + xmax) / 2, (ymin + ymax) / 2
     hw, hh = (1 + margin) * (xmax - xmin) / 2, (1 + margin) * (ymax - ymin) / 2
     th = -math.pi / 2 + 2 * math.pi * torch.arange(num_sensors, dtype=torch.float64) / num_sensors
@@ -64,6 +65,7 @@ def arena_network(
     sensing_range: float = 8.0,
     meas_std: float = 0.2,
     margin: float = 0.0,
+    key: str = "task.network",
 ) -> SensorNetwork:
     """The LiDAR network of the paper's robot arena, placed around a scene's extent.
 
@@ -74,12 +76,13 @@ def arena_network(
         sensing_range: a sensor measures a pedestrian closer than this (m).
         meas_std: :math:`\\sigma_\\nu` (m).
         margin: relative enlargement of the placement ellipse.
+        key: the config key of these settings, named in errors (the real-data study's ``task.network``).
     Raises:
         ConfigError: bad values, or a disconnected graph (naming the field to change).
     """
     if not isinstance(k_nearest, int) or k_nearest < 1:
-        raise ConfigError(f"task.network.k_nearest={k_nearest!r} must be an integer >= 1")
-    pos = perimeter_positions(extent, num_sensors, margin)
+        raise ConfigError(f"{key}.k_nearest={k_nearest!r} must be an integer >= 1")
+    pos = perimeter_positions(extent, num_sensors, margin, key)
     try:
         return make_network(
             num_sensors=num_sensors,
@@ -91,8 +94,8 @@ def arena_network(
             meas_std=meas_std,
         )
     except ConfigError as e:
-        msg = str(e).replace("network.", "task.network.")
-        raise ConfigError(msg + "; raise task.network.k_nearest" if "disconnected" in msg else msg) from None
+        msg = str(e).replace("network.", f"{key}.")
+        raise ConfigError(msg + f"; raise {key}.k_nearest" if "disconnected" in msg else msg) from None
 
 
 @dataclass

@@ -132,7 +132,13 @@ def episode_streams(seed: int, split: str, start: int, num: int) -> Streams:
 def sample_split(scenario, network, seed: int, test_episodes: int, train_episodes: int, dtype, device):
     """The (test, train) episodes of a run, on ``device`` in ``dtype``. One random stream per
     episode (:func:`episode_streams`), so episode ``i`` of either set is the same whatever the
-    number of training or test episodes."""
-    test = scenario.sample(test_episodes, network, episode_streams(seed, "test", 0, test_episodes))
-    train = scenario.sample(train_episodes, network, episode_streams(seed, "train", 0, train_episodes))
+    number of training or test episodes. A recorded scenario (``spec.source == "recorded"``) is told the
+    pool each set comes from (``split=``)."""
+    pools = getattr(getattr(scenario, "spec", None), "source", None) == "recorded"
+
+    def draw(num, split):
+        streams = episode_streams(seed, split, 0, num)
+        return scenario.sample(num, network, streams, split=split) if pools else scenario.sample(num, network, streams)
+
+    test, train = draw(test_episodes, "test"), draw(train_episodes, "train")
     return test.to(dtype, device), train.to(dtype, device)

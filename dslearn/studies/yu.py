@@ -20,14 +20,17 @@ import torch
 
 from dslearn.diagnostics import Diagnostics
 from dslearn.errors import ConfigError
+from dslearn.io import attach_artifact
 from dslearn.filters.distributed import FilterSettings, initial_belief
 from dslearn.fusion.strategies import Fusion
 from dslearn.learning.online import DataSettings, OnlineLearner, checkpoints as eval_points
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.network import SensorNetwork
 from dslearn.metrics import metric_rows, prediction_error, tracking_metrics
+from dslearn.metrics.trajectories import TRACKS_FILE, track_record
 from dslearn.progress import evaluation_bar, training_bar
 from dslearn.sim.scenario import sample_split
+from dslearn.types import agents
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +68,9 @@ class YuStudy:
     def run(self, diagnostics=None, progress: bool = False) -> pd.DataFrame:
         """Train online on the training episodes, evaluate on the test episodes.
 
-        Returns a tidy DataFrame (one row per checkpoint x test episode x node x metric).
+        Returns a tidy DataFrame (one row per checkpoint x test episode x node x metric). Its
+        ``attrs["artifacts"]`` (:class:`dslearn.io.Artifacts`) hand the app ``tracks.npz``, the tracking
+        figure's arrays after the last training episode (:meth:`track_arrays`).
         """
         scenario, network, model, fusion, f = self.scenario, self.network, self.model, self.fusion, self.filter
         name = str(self.model_spec["name"])
@@ -93,9 +98,14 @@ class YuStudy:
         step = getattr(self.predict, "name", "ekf")
         model_label = name if step == "ekf" else f"{name}+{step}"
 
+        tracks = {}
+
         def evaluate(seen: int) -> pd.DataFrame:
             with diag.timed("evaluate"):
                 res = learner.estimate(test.measurements)
+                if seen == checkpoints[-1]:  # the tracking figure's arrays: after the last training episode
+                    tracks.update(self.track_arrays(res, test, model=model_label, consensus=fusion.name,
+                                                    train_seen=int(seen)))
             metrics = tracking_metrics(res, test.states)
             metrics["pred_err"] = prediction_error(model, test.states, network.num_nodes, ctx, per_node=model.learnable)
             tbar.update(1)
@@ -113,7 +123,20 @@ class YuStudy:
         diag.count("train_episodes_seen", learner.seen)
         bar.close()
         tbar.close()
+        if tracks:
+            attach_artifact(df, TRACKS_FILE, tracks)
         return df
+
+    def track_arrays(self, res, test, **labels) -> dict:
+        """The tracking figure's arrays (:func:`~dslearn.metrics.trajectories.track_record`) of the beliefs
+        ``res`` on the test episodes ``test``: the network, test episode 0's true and estimated tracks of
+        every node, every node's position error and NEES per step over the test episodes."""
+        from dslearn.methods.distributed import beliefs_to_estimates
+
+        est = beliefs_to_estimates(res.mean, res.info, self.network)
+        truth = agents(test.states)[..., :2]
+        units = getattr(getattr(self.scenario, "spec", None), "units", "m")
+        return track_record(est, truth, self.scenario.ctx().dt, self.network, units=units, **labels)
 
 
 def check_offline(model) -> None:

@@ -1,0 +1,171 @@
+r"""Jiang et al.'s method (ISITA 2022) as a method of the matrix: at every timing the fusion centre identifies
+the source's parameter over the factor graph from the sensors' compressed squared-range samples (Gaussian
+belief propagation, Eqs. 6-16, expanded at the tracker's prediction) and the EKF-FG refines its prediction
+with that output (Eqs. 17-19) — the loop of :func:`dslearn.learning.factor_graph.engine.simulate`, run on
+the measurements alone (no truth, no centralised baselines, one configuration).
+
+Its estimates are the EKF-FG's refined means ``x_{k|k}`` with the diagonal covariances
+``diag(P_{x,k|k})`` (the tracker follows each parameter as an independent scalar, Eq. 18), reported by one
+node, the fusion centre. The identification is online within every episode: the training episodes teach
+it nothing. It takes no motion model, observation model or fusion part: the sensors' squared-range model is
+the scenario's (its sensor positions and ``sigma_y``, the scenario's network), the fusion is the factor
+graph's own message passing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import torch
+
+from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
+from dslearn.errors import ConfigError, check_choice
+from dslearn.filters.ekf_fg import OBS_VAR_MODES, TrackState, ekf_fg_step, observation_variance, predict
+from dslearn.learning.factor_graph.crlb import CRLB_FORMS, crlb
+from dslearn.learning.factor_graph.engine import TrackerSettings
+from dslearn.learning.factor_graph.identification import GRAPHS, SCHEDULES, compress_measurements, identify
+from dslearn.methods.base import require
+from dslearn.network import SensorNetwork
+from dslearn.sim.squared_range import SquaredRange
+
+#: the factor graph's keys (``filter.fg``) and the tracker's (``filter.tracker``), as in ``conf/task/jiang_fg.yaml``
+FG_KEYS = ("init_guess", "init_guess_mode", "init_var", "prior_var", "relinearize", "taylor_point", "schedule",
+           "damping", "graph", "measurement_var", "crlb_form", "lambda_tol", "converge_tol")
+TRACKER_KEYS = ("initial_state_var", "initial_gradient_var", "process_var", "gradient_var", "obs_var", "gate")
+_CHOICES = {"init_guess_mode": ("fixed", "prediction"), "taylor_point": ("prediction", "guess"),
+            "schedule": SCHEDULES, "graph": GRAPHS, "measurement_var": ("sample", "known"),
+            "crlb_form": CRLB_FORMS, "obs_var": OBS_VAR_MODES}
+#: (key, lower bound, strict); ``None`` allowed for prior_var (no prior node) and gate (off)
+_RANGES = (("init_var", 0.0, True), ("prior_var", 0.0, True), ("damping", 0.0, False), ("lambda_tol", 0.0, False),
+           ("converge_tol", 0.0, True), ("initial_state_var", 0.0, True), ("initial_gradient_var", 0.0, True),
+           ("process_var", 0.0, False), ("gradient_var", 0.0, False), ("gate", 0.0, True))
+#: the reporting node (the study's ``node`` column)
+NODE = "fusion_center"
+
+
+def _block(value, keys: tuple[str, ...], prefix: str) -> dict:
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise ConfigError(f"{prefix}={value!r} must be a mapping with keys {list(keys)}")
+    unknown = sorted(str(k) for k in value if k not in keys)
+    if unknown:
+        raise ConfigError(f"{prefix}: unknown key(s) {unknown}; allowed: {list(keys)}")
+    return dict(value)
+
+
+def _number(key: str, v) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v:
+        raise ConfigError(f"filter.{key}={v!r} must be a number")
+    return float(v)
+
+
+def tracker_settings(fg: dict, tracker: dict, initial_state) -> TrackerSettings:
+    """Checked :class:`TrackerSettings` from the ``filter.fg`` / ``filter.tracker`` blocks (the defaults of
+    :class:`TrackerSettings` for missing keys: the paper's equations). ConfigError naming the key."""
+    values = {**_block(fg, FG_KEYS, "filter.fg"), **_block(tracker, TRACKER_KEYS, "filter.tracker")}
+    where = {k: f"fg.{k}" for k in FG_KEYS} | {k: f"tracker.{k}" for k in TRACKER_KEYS}
+    for key, allowed in _CHOICES.items():
+        if key in values:
+            check_choice(f"filter.{where[key]}", values[key], allowed)
+    if "relinearize" in values and not isinstance(values["relinearize"], bool):
+        raise ConfigError(f"filter.fg.relinearize={values['relinearize']!r} must be true or false")
+    for key, low, strict in _RANGES:
+        v = values.get(key)
+        if v is None:
+            if key in values and key not in ("prior_var", "gate"):
+                raise ConfigError(f"filter.{where[key]} must be a number, not null")
+            continue
+        x = _number(where[key], v)
+        if (x <= low if strict else x < low) or (key == "damping" and x >= 1.0) or x == float("inf"):
+            rule = f"{'>' if strict else '>='} {low:g}" + (" and < 1" if key == "damping" else "")
+            raise ConfigError(f"filter.{where[key]}={v!r} must be {rule} (finite)")
+    for key, v in (("fg.init_guess", values.get("init_guess", (0.0, 0.0))), ("initial_state", initial_state)):
+        if not isinstance(v, (list, tuple)) or len(v) != 2:
+            raise ConfigError(f"filter.{key}={v!r} must be a list of 2 numbers (the source's 2 parameters)")
+        for x in v:
+            _number(key, x)
+    return TrackerSettings.from_config(initial_state=list(initial_state), **values)
+
+
+@dataclasses.dataclass
+class FactorGraphMethod:
+    """FG identification + EKF-FG (Jiang et al.) on any scenario whose sensors measure squared ranges.
+
+    Args:
+        iterations: FG message-passing iterations per timing (the study's ``max_iter``).
+        initial_state: the tracker's start ``x_{0}`` (the study's ``scenario.initial_state``).
+        fg: the identification's settings (the study's ``fg`` block; missing keys: the paper's choices).
+        tracker: the EKF-FG's settings (the study's ``tracker`` block).
+    """
+
+    iterations: int = 10
+    initial_state: Any = (2.0, -2.0)
+    fg: Any = None
+    tracker: Any = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.iterations, bool) or not isinstance(self.iterations, int) or self.iterations < 1:
+            raise ConfigError(f"filter.iterations={self.iterations!r} must be an integer >= 1")
+        self.settings = tracker_settings(self.fg, self.tracker, self.initial_state)
+
+    @property
+    def label(self) -> str:
+        s = self.settings
+        extra = "" if s.obs_var == "convergence" else f" {s.obs_var}"
+        return f"fg_ekf t={self.iterations}{extra}"
+
+    def fits(self, spec: ScenarioSpec) -> str | None:
+        return require(spec, "Jiang's factor-graph identification + EKF-FG (sensors that measure squared ranges "
+                             "to a 2-D source)", measurement="squared_range")
+
+    def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
+                 seed: int) -> Estimates:
+        """The EKF-FG's estimates of every test episode (``train`` is not used: the identification is online)."""
+        meas, vis = test.meas, test.visible
+        if meas.shape[3] != 1:
+            raise ConfigError(f"scenario {scenario.spec.name}: the factor graph identifies one source; the "
+                              f"measurements hold {meas.shape[3]}")
+        if not bool(vis.all()):
+            raise ConfigError(f"scenario {scenario.spec.name}: the factor graph needs every sensor's samples at "
+                              "every timing (some are not visible)")
+        sensors = network.positions[:network.num_sensors].to(meas)
+        samples = meas[:network.num_sensors, :, :, 0].permute(1, 2, 0, 3)  # (B, K, N, L)
+        mean, var = self.track(SquaredRange(sensors), samples, float(network.meas_std))
+        return Estimates(mean[None, :, :, None], torch.diag_embed(var)[None, :, :, None], [NODE],
+                         torch.ones(1, dtype=torch.bool))
+
+    def track(self, h, samples: torch.Tensor, sigma_y: float):
+        """The loop of :func:`~dslearn.learning.factor_graph.engine.simulate` (its EKF-FG part, one
+        configuration ``C = 1``) on raw samples ``(B, K, N, L)``: the refined means and variances ``(B, K, M)``."""
+        s = self.settings
+        b, k_steps, _, lsm = samples.shape
+        dt, dev = samples.dtype, samples.device
+        m = len(s.initial_state)
+        guess = torch.tensor(s.init_guess, dtype=dt, device=dev)
+        sig_cb = torch.full((1, b), float(sigma_y), dtype=dt, device=dev)
+        x0 = torch.tensor(s.initial_state, dtype=dt, device=dev).expand(1, b, m)
+        st = TrackState(x0.clone(), torch.full((1, b, m), s.initial_state_var, dtype=dt, device=dev),
+                        torch.zeros(1, b, m, dtype=dt, device=dev),
+                        torch.full((1, b, m), s.initial_gradient_var, dtype=dt, device=dev))
+        num_iters = torch.tensor([self.iterations], device=dev)
+        cidx = torch.arange(1, device=dev)
+        means, variances = [], []
+        for k in range(k_steps):
+            y = samples[None, :, k]  # (1, B, N, L)
+            x_pred, p_pred = predict(st, s.process_var)
+            ym, yv = compress_measurements(y, None if s.measurement_var == "sample" else sig_cb.square())
+            start = x_pred if s.init_guess_mode == "prediction" else guess
+            beta = x_pred if s.taylor_point == "prediction" else torch.broadcast_to(start, x_pred.shape)
+            ident = identify(h, ym, yv, beta, start, self.iterations, init_var=s.init_var, prior_var=s.prior_var,
+                             relinearize=s.relinearize, lambda_tol=s.lambda_tol, tol=s.converge_tol,
+                             schedule=s.schedule, damping=s.damping, graph=s.graph)
+            eta = ident.mean[num_iters, cidx]
+            bound = crlb(h, x_pred, sig_cb, lsm, s.crlb_form)
+            obs_var, _ = observation_variance(bound, eta, ident.mean[num_iters - 1, cidx], x_pred, p_pred,
+                                              s.obs_var, s.gate)
+            st = ekf_fg_step(st, eta, obs_var, s.process_var, s.gradient_var, x_pred=x_pred, P_pred=p_pred)
+            means.append(st.x_mean[0])
+            variances.append(st.x_var[0])
+        return torch.stack(means, 1), torch.stack(variances, 1)

@@ -1,0 +1,344 @@
+"""The comparison matrix: a cell's rows, the refusal of a cell that does not fit, the sweeper's job list
+(experiment=matrix, experiment=matrix_small), the report's table, and one real sweep through the commands."""
+
+import inspect
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import get_object
+
+from dslearn.compose import build
+from dslearn.episodes import Episodes, Estimates, ScenarioSpec
+from dslearn.errors import ConfigError
+from dslearn.reports import matrix as rep
+from dslearn.schemas.matrix import select_cells
+from dslearn.studies.matrix import MatrixCell, MatrixSettings
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = str(ROOT / "conf")
+BIN = Path(sys.executable).parent
+
+
+# ----------------------------------------------------------------------------------- one cell by hand
+K, A, S = 4, 2, 3  # steps, targets, reporting nodes (the last one does not sense)
+OFFSET = torch.tensor([0.3, 0.4], dtype=torch.float64)  # |OFFSET| = 0.5
+
+
+def _truth(b: int) -> torch.Tensor:
+    """Positions (b, K+1, A, 2) of episode indices 0..b-1: a known function of the episode and the step."""
+    e = torch.arange(b, dtype=torch.float64).view(b, 1, 1, 1)
+    k = torch.arange(K + 1, dtype=torch.float64).view(1, K + 1, 1, 1)
+    a = torch.arange(A, dtype=torch.float64).view(1, 1, A, 1)
+    return torch.cat([e + k + a, 2 * k - a + 0 * e], -1)
+
+
+class FakeScenario:
+    owns_network, network, area = True, None, (0.0, 1.0, 0.0, 1.0)
+
+    def __init__(self, measurement="position"):
+        self.spec = ScenarioSpec("fake", measurement, A, "pv2d", 1.0, K, units="m")
+        self.samples = 0
+
+    def sample(self, num, network, generator):
+        self.samples += 1
+        pos = _truth(num)
+        states = torch.cat([pos, torch.zeros_like(pos)], -1).flatten(-2)  # per agent [px, py, vx, vy]
+        return Episodes(states, torch.zeros(S, num, K + 1, A, 2), torch.zeros(S, num, K + 1, A, dtype=torch.bool))
+
+    def positions(self, states):
+        return states.unflatten(-1, (A, 4))[..., :2]
+
+
+class FakeMethod:
+    """Node i of episode b misses every target by (i+1)(b+1) OFFSET at odd steps and 3 (i+1)(b+1) OFFSET at
+    even ones (and by 1000 at step 0, which the metrics leave out), covariance SIGMA2 * I."""
+
+    label, SIGMA2 = "fake method", 0.25
+
+    def __init__(self, cov=True):
+        self.cov = cov
+
+    def fits(self, spec):
+        return None if spec.measurement == "position" else f"the fake needs measurement position; {spec.measurement}"
+
+    def estimate(self, scenario, network, train, test, seed):
+        b = test.meas.shape[1]
+        i = torch.arange(S, dtype=torch.float64).view(S, 1, 1, 1, 1)
+        e = torch.arange(b, dtype=torch.float64).view(1, b, 1, 1, 1)
+        step = torch.tensor([1000.0] + [1.0 if k % 2 else 3.0 for k in range(1, K + 1)], dtype=torch.float64).view(1, 1, K + 1, 1, 1)
+        mean = _truth(b).unsqueeze(0) + (i + 1) * (e + 1) * step * OFFSET
+        cov = self.SIGMA2 * torch.eye(2, dtype=torch.float64).expand(S, b, K + 1, A, 2, 2) if self.cov else None
+        return Estimates(mean, cov, ["n1", "n2", "relay"], torch.tensor([True, True, False]))
+
+
+def _cell(method, scenario=None, test=3):
+    return MatrixCell(MatrixSettings(train_episodes=2, test_episodes=test), scenario or FakeScenario(), None,
+                      method, 0, torch.float64, torch.device("cpu"))
+
+
+def test_cell_rows_by_hand():
+    df = _cell(FakeMethod()).run()
+    assert list(df.columns[-5:]) == ["node", "node_kind", "episode", "metric", "value"]
+    assert set(df["method"]) == {"fake method"} and set(df["scenario"]) == {"fake"} and set(df["units"]) == {"m"}
+    for (node, ep), g in df[df["node"] != "all"].groupby(["node", "episode"]):
+        i, c = ["n1", "n2", "relay"].index(node), 0.5 * (["n1", "n2", "relay"].index(node) + 1) * (ep + 1)
+        v = g.set_index("metric")["value"]
+        assert g["node_kind"].iloc[0] == ("comm" if node == "relay" else "sensor"), node
+        # errors c and 3c at alternate steps (K = 4: two of each): RMSE sqrt((c^2 + 9c^2)/2), mean error 2c;
+        # NEES per step sum_a |e|^2 / sigma^2 / (2A) = |e|^2 / (2 sigma^2), averaged over the steps
+        assert v["rmse"] == pytest.approx(c * math.sqrt(5.0), rel=1e-12), (node, ep, i)
+        assert v["pos_err"] == pytest.approx(2 * c, rel=1e-12)
+        assert v["nees_pos"] == pytest.approx(5 * c * c / (2 * FakeMethod.SIGMA2), rel=1e-12)
+    assert len(df[df["node"] != "all"]) == 3 * 3 * 3  # nodes x episodes x metrics
+    rt = df[df["metric"] == "runtime_s"]
+    assert len(rt) == 1 and rt["node"].iloc[0] == "all" and 0 <= rt["value"].iloc[0] < 5
+    # the report's cell value: per episode the mean over the SENSING nodes, then the mean over episodes
+    vals = rep.cell_values(df).iloc[0]
+    rmse = sum(0.5 * math.sqrt(5) * (i + 1) * (b + 1) for i in (0, 1) for b in range(3)) / 6
+    assert vals["rmse"] == pytest.approx(rmse, rel=1e-12) and vals["episodes"] == 3
+    nees = sum(5 * (0.5 * (i + 1) * (b + 1)) ** 2 / 0.5 for i in (0, 1) for b in range(3)) / 6
+    assert vals["nees_pos"] == pytest.approx(nees, rel=1e-12)
+    no_cov = _cell(FakeMethod(cov=False)).run()
+    assert "nees_pos" not in set(no_cov["metric"]) and math.isnan(rep.cell_values(no_cov)["nees_pos"].iloc[0])
+
+
+def test_a_cell_that_does_not_fit_is_refused_before_any_work():
+    sc = FakeScenario("squared_range")
+    with pytest.raises(ConfigError, match="fake method does not fit scenario fake: the fake needs measurement position"):
+        _cell(FakeMethod(), sc).run()
+    assert sc.samples == 0  # refused before any episode was drawn
+    # the real methods' verdicts on a spec they cannot use name what is missing
+    from dslearn.methods.dgpt import DGPTMethod
+    from dslearn.methods.distributed import DistributedFilter
+
+    spec = ScenarioSpec("jiang_like", "squared_range", 1, "param2d", 1.0, 10, networked=False)
+    assert "needs measurement position; scenario jiang_like has squared_range" in DistributedFilter.fits(None, spec)
+    assert "needs measurement position; scenario jiang_like has squared_range" in DGPTMethod.fits(None, spec)
+    assert DistributedFilter.fits(None, ScenarioSpec("x", "position", 2, "pv2d", 1.0, 5, networked=False)) == (
+        "the distributed filter (position sensors, agents [p, v] in 2-D, a network) needs networked True; "
+        "scenario x has False")
+
+
+def test_dslearn_run_refuses_a_cell_that_does_not_fit():
+    from dslearn.run import precheck
+
+    msg = precheck(["task=matrix", "method=ekf_sfm_hybrid", "scenario=liu_s1"])
+    assert msg is not None and "model=sfm is the true social-force model" in msg and \
+        "which scenario s1 does not have" in msg, msg  # the part's own refusal names what the scenario lacks
+    assert precheck(["task=matrix", "method=ekf_lin_hybrid", "scenario=liu_s1", "task.train_episodes=1"]) is None
+
+
+# ----------------------------------------------------------------------------------- the job lists
+def _options(group):
+    return sorted(p.stem for p in (ROOT / "conf" / group).glob("*.yaml"))
+
+
+def _matrix_scenarios():
+    """The scenario options that are matrix scenarios (a class declaring a spec; Liu's study options s1-s3
+    are trajectory generators)."""
+    out = []
+    for o in _options("scenario"):
+        target = yaml.safe_load((ROOT / "conf" / "scenario" / f"{o}.yaml").read_text())["_target_"]
+        if inspect.isclass(get_object(target)):
+            out.append(o)
+    return out
+
+
+def _expected_fit(preset_cfg, scenario) -> bool:
+    """The design's rules, independent of the methods' code: the distributed filter needs position
+    measurements of 2-D [p, v] agents on a network, and its social force model a scenario that simulates
+    social forces; Liu's DGPT needs position measurements."""
+    spec = scenario.spec
+    engine = str(preset_cfg.filter._target_)
+    if engine.endswith("DGPTMethod"):
+        return spec.measurement == "position"
+    if engine.endswith("FactorGraphMethod"):  # Jiang's identification + EKF-FG: squared-range sensors
+        return spec.measurement == "squared_range"
+    if engine.endswith("RBPFMethod"):  # Braga's RBPF + online EM: terrain altimeters on a network
+        return spec.measurement == "terrain_altitude" and spec.networked
+    ok = spec.measurement == "position" and spec.state == "pv2d" and spec.networked
+    return ok and (str(preset_cfg.model.name) != "sfm" or hasattr(scenario, "sfm"))
+
+
+def _jobs(experiment, judge=True):
+    from dslearn.run import sweep_combinations
+
+    with initialize_config_dir(config_dir=CONF, version_base=None):
+        combos, multirun, master = sweep_combinations([f"experiment={experiment}"])
+        assert multirun and master.hydra.sweeper._target_.endswith("MatrixSweeper")
+        if not judge:
+            return combos, None, None
+        kept, records = select_cells(combos, lambda ov: compose("config", overrides=list(ov)))
+        ov = [dict(x.split("=") for x in c if not x.startswith("experiment=")) for c in combos]
+        scen = {s: build(compose("config", overrides=["task=matrix", f"scenario={s}"]).scenario, "scenario")
+                for s in {o["scenario"] for o in ov}}
+        presets = {m: compose("config", overrides=["task=matrix", f"method={m}"]) for m in {o["method"] for o in ov}}
+    return combos, (kept, records), (scen, presets)
+
+
+def test_experiment_matrix_lists_every_preset_on_every_matrix_scenario():
+    combos, _, _ = _jobs("matrix", judge=False)
+    combos = [[x for x in c if not x.startswith("experiment=")] for c in combos]
+    pairs = [tuple(sorted(c)) for c in combos]
+    assert len(pairs) == len(set(pairs))
+    want = {(f"method={m}", f"scenario={s}") for m in _options("method") for s in _matrix_scenarios()}
+    have = {tuple(sorted(c)) for c in combos}
+    missing = sorted({x for p in want - have for x in p} - {x for p in have for x in p})
+    assert have == want, f"add to conf/experiment/matrix.yaml: {missing}"  # every preset on every matrix scenario
+    small, _, _ = _jobs("matrix_small", judge=False)
+    assert {tuple(sorted(x for x in c if not x.startswith("experiment="))) for c in small} <= want
+
+
+def test_experiment_matrix_small_jobs_are_exactly_the_fitting_cells():
+    combos, (kept, records), (scen, presets) = _jobs("matrix_small")
+    ov = [dict(x.split("=") for x in c if not x.startswith("experiment=")) for c in combos]
+    # every family on every scenario without external data
+    own = ("dgpt", "fg_ekf", "rbpf_em")  # engines of their own (no motion-model slot)
+    models = {str(presets[o["method"]].model.name) for o in ov if not o["method"].startswith(own)}
+    assert {"lin", "sfm", "gp_increment"} <= models
+    assert all(any(o["method"].startswith(e) for o in ov) for e in own)
+    assert {o["scenario"] for o in ov} == {"yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "jiang", "braga", "corridor"}
+    steps = {str(presets[o["method"]].filter.predict._target_).rsplit(".", 1)[-1] for o in ov
+             if not o["method"].startswith(own)}
+    assert steps == {"ExtendedPredict", "UnscentedPredict"}
+    fit = [_expected_fit(presets[o["method"]], scen[o["scenario"]]) for o in ov]
+    assert kept == [c for c, f in zip(combos, fit) if f]  # every fitting cell a job, in the sweep's order
+    assert len(records) == len(combos)
+    for r, f, c in zip(records, fit, combos):
+        assert r["overrides"] == " ".join(c)
+        assert (r["reason"] is None) == f and (r["job"] is not None) == f, r
+        if not f:  # the social force model on Liu's scenarios: no social forces simulated there
+            assert r["reason"].startswith(f"{r['method']} does not fit scenario {r['scenario']}: "), r
+    assert [r["job"] for r in records if r["job"] is not None] == list(range(len(kept)))
+    assert 0 < len(kept) < len(combos)
+
+
+# ----------------------------------------------------------------------------------- the report
+def _synthetic(tmp_path):
+    """Two methods x three scenarios: A on yu and s1 (rows by hand), B on yu (no covariance), A on jiang
+    dropped (n/a), B on s1 failed, B on jiang incomplete (no job folder)."""
+    rows = []
+
+    def add(method, scen, units, metric, per_node_ep, runtime):
+        for (node, kind), vals in per_node_ep.items():
+            for ep, v in enumerate(vals):
+                rows.append(dict(study="m", task="matrix", seed=0, method=method, scenario=scen, units=units,
+                                 node=node, node_kind=kind, episode=ep, metric=metric, value=v))
+        if runtime is not None:
+            rows.append(dict(study="m", task="matrix", seed=0, method=method, scenario=scen, units=units, node="all",
+                             node_kind="all", episode=-1, metric="runtime_s", value=runtime))
+
+    add("A", "yu", "m", "rmse", {("s1", "sensor"): [1.0, 3.0], ("s2", "sensor"): [2.0, 5.0], ("c", "comm"): [99, 99]}, 12.345)
+    add("A", "yu", "m", "nees_pos", {("s1", "sensor"): [0.5, 1.0], ("s2", "sensor"): [1.5, 1.0], ("c", "comm"): [9, 9]}, None)
+    add("A", "s1", "km", "rmse", {("centre", "sensor"): [0.001234, 0.001238]}, 0.5)
+    add("B", "yu", "m", "rmse", {("s1", "sensor"): [4.0, 4.0], ("s2", "sensor"): [4.0, 4.0]}, 100.0)
+    res = pd.DataFrame(rows)
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    res.to_csv(sweep / "sweep_results.csv", index=False)
+    reason = "A does not fit scenario jiang: A needs measurement position; scenario jiang has squared_range"
+    cells = pd.DataFrame([
+        dict(job=0, method="A", scenario="yu", units="m", reason=None, overrides="method=a scenario=yu"),
+        dict(job=1, method="A", scenario="s1", units="km", reason=None, overrides="method=a scenario=s1"),
+        dict(job=None, method="A", scenario="jiang", units="m", reason=reason, overrides="method=a scenario=jiang"),
+        dict(job=2, method="B", scenario="yu", units="m", reason=None, overrides="method=b scenario=yu"),
+        dict(job=3, method="B", scenario="s1", units="km", reason=None, overrides="method=b scenario=s1"),
+        dict(job=4, method="B", scenario="jiang", units="m", reason=None, overrides="method=b scenario=jiang"),
+    ])
+    cells["job"] = cells["job"].astype("Int64")
+    cells.to_csv(sweep / "matrix_cells.csv", index=False)
+    cells[cells["reason"].notna()].drop(columns="job").to_csv(sweep / "skipped_cells.csv", index=False)
+    (sweep / "3").mkdir()
+    (sweep / "3" / "status.json").write_text(json.dumps({"status": "failed", "error": "boom"}))
+    return sweep
+
+
+def test_report_table_on_a_synthetic_sweep(tmp_path):
+    from dslearn.report import report
+
+    sweep = _synthetic(tmp_path)
+    text = report(sweep)
+    tab = pd.read_csv(sweep / "matrix.csv", dtype=str, keep_default_na=False)
+    assert list(tab.columns) == ["method", "yu", "s1", "jiang"] and list(tab["method"]) == ["A", "B"]
+    cell = tab.set_index("method")
+    # A on yu: per episode the mean over the sensors (1.5, 4.0; the comm node left out), mean 2.75;
+    # NEES (1.0, 1.0) -> 1.00; 12.345 s -> 12.3 s (three significant digits everywhere)
+    assert cell.loc["A", "yu"] == "2.75 m (1.00) 12.3 s"
+    assert cell.loc["A", "s1"] == "0.00124 km 0.500 s"  # no NEES rows: no parentheses
+    assert cell.loc["A", "jiang"] == "n/a: A needs measurement position; scenario jiang has squared_range"
+    assert cell.loc["B", "yu"] == "4.00 m 100 s"
+    assert cell.loc["B", "s1"] == "failed" and cell.loc["B", "jiang"] == "incomplete"
+    assert "| A | 2.75 m (1.00) 12.3 s |" in (sweep / "matrix.md").read_text() and "| A | 2.75 m" in text
+    vals = pd.read_csv(sweep / "matrix_values.csv")
+    assert list(vals["status"]) == ["ok", "ok", "skipped", "ok", "failed", "incomplete"]
+    assert vals.loc[0, "rmse"] == 2.75 and vals.loc[0, "nees_pos"] == 1.0 and vals.loc[1, "rmse"] == pytest.approx(0.001236, rel=1e-12)
+    rel = rep.relative_rmse(rep.matrix_values(pd.read_csv(sweep / "sweep_results.csv"), sweep))
+    assert rel.loc["B", "yu"] == pytest.approx(4.0 / 2.75) and rel.loc["A", "yu"] == 1.0
+    assert math.isnan(rel.loc["A", "jiang"]) and math.isnan(rel.loc["B", "s1"])
+    assert (sweep / "matrix.png").stat().st_size > 10_000
+    # --out elsewhere: the n/a and failed cells still come from the sweep folder
+    report(sweep / "sweep_results.csv", tmp_path / "elsewhere")
+    assert pd.read_csv(tmp_path / "elsewhere" / "matrix.csv", dtype=str).equals(tab)
+
+
+# ----------------------------------------------------------------------------------- a real sweep
+def test_a_real_matrix_sweep_and_its_report(tmp_path):
+    """Four combinations, three fit (the social force model has no social forces to simulate on Liu's S1):
+    run from outside the repository (the installed commands find the matrix sweeper there too)."""
+    sweep = tmp_path / "sweep"
+    env = {**os.environ, "CI": "1"}
+    cmd = [str(BIN / "dslearn-run"), "-m", "experiment=matrix", "method=ekf_lin_hybrid,ekf_sfm_hybrid",
+           "scenario=yu_two_agents,liu_s1", "task.train_episodes=1", "task.test_episodes=2",
+           "hydra/launcher=basic", f"hydra.sweep.dir={sweep}"]
+    r = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    cells = pd.read_csv(sweep / "matrix_cells.csv")
+    assert list(zip(cells["method"], cells["scenario"])) == [
+        ("ekf lin hybrid", "yu"), ("ekf lin hybrid", "s1"), ("ekf sfm hybrid", "yu"), ("ekf sfm hybrid", "s1")]
+    assert cells["job"].tolist()[:3] == [0, 1, 2] and pd.isna(cells["job"].iloc[3])
+    skipped = pd.read_csv(sweep / "skipped_cells.csv")
+    assert list(zip(skipped["method"], skipped["scenario"])) == [("ekf sfm hybrid", "s1")]
+    assert skipped["reason"].iloc[0].startswith("ekf sfm hybrid does not fit scenario s1: ")
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir() and p.name.isdigit()) == ["0", "1", "2"]
+    r = subprocess.run([str(BIN / "dslearn-report"), str(sweep)], cwd=tmp_path, env=env, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    tab = pd.read_csv(sweep / "matrix.csv", dtype=str, keep_default_na=False).set_index("method")
+    vals = pd.read_csv(sweep / "matrix_values.csv").set_index(["method", "scenario"])
+    assert tab.loc["ekf sfm hybrid", "s1"].startswith("n/a: its parts cannot be built for scenario s1")
+    for job, (m, s) in enumerate([("ekf lin hybrid", "yu"), ("ekf lin hybrid", "s1"), ("ekf sfm hybrid", "yu")]):
+        res = pd.read_csv(sweep / str(job) / "results.csv")  # the job's own rows, recomputed here
+        sens = res[res["node_kind"] == "sensor"]
+        rmse = sens[sens["metric"] == "rmse"].groupby("episode")["value"].mean().mean()
+        nees = sens[sens["metric"] == "nees_pos"].groupby("episode")["value"].mean().mean()
+        t = res.loc[res["metric"] == "runtime_s", "value"].iloc[0]
+        assert vals.loc[(m, s), "rmse"] == pytest.approx(rmse, rel=1e-12)
+        assert vals.loc[(m, s), "nees_pos"] == pytest.approx(nees, rel=1e-12)
+        assert vals.loc[(m, s), "runtime_s"] == pytest.approx(t, rel=1e-12)
+        unit = res["units"].iloc[0]
+        assert tab.loc[m, s] == f"{rep.sig(rmse)} {unit} ({rep.sig(nees)}) {rep.sig(t)} s"
+
+
+def test_a_cell_whose_model_learns_online(make_cfg):
+    """The online GP learns from the training episodes' measurements (Algorithm 1 without evaluations at its
+    checkpoints) before it tracks the test episodes: with one training episode the estimates differ from those
+    of the GP at its prior (no training episode), on the same test episodes."""
+    from dslearn.compose import build_study
+
+    out = {}
+    for n in (0, 1):
+        cfg = make_cfg("task=matrix", "method=ekf_gp_hybrid", "scenario=yu_two_agents", f"task.train_episodes={n}",
+                       "task.test_episodes=1")
+        df = build_study(cfg).run()
+        out[n] = df[df["metric"] == "rmse"].sort_values("node")["value"].to_numpy()
+    assert len(out[0]) == len(out[1]) > 0 and all(math.isfinite(v) for v in out[1])
+    assert abs(out[1] - out[0]).max() > 1e-6
