@@ -16,6 +16,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -164,6 +167,169 @@ def _parquet_safe(df: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+#: the number of jobs of the sweep about to start (``dslearn-run`` counts them before Hydra starts)
+_EXPECTED_JOBS: int | None = None
+#: the sweep running in this process (its callback), for the Ctrl-C line of ``dslearn-run``
+_ACTIVE: "GatherResults | None" = None
+
+
+def expect_jobs(n: int | None) -> None:
+    """Tell the next sweep's status line how many jobs it has."""
+    global _EXPECTED_JOBS
+    _EXPECTED_JOBS = None if n is None else int(n)
+
+
+def _duration(s: float) -> str:
+    s = int(round(max(s, 0.0)))
+    h, rest = divmod(s, 3600)
+    m, sec = divmod(rest, 60)
+    return f"{h}h{m:02d}m" if h else (f"{m}m{sec:02d}s" if m else f"{sec}s")
+
+
+def launcher_workers(launcher: Any, cpus: int | None = None) -> int:
+    """How many jobs a sweep's launcher runs at once: joblib's ``n_jobs`` (negative: ``cpus + 1 + n_jobs``,
+    as joblib counts), 1 for the basic launcher, the CPU count otherwise."""
+    cpus = cpus or os.cpu_count() or 1
+    target = str(_get(launcher, "_target_") or "")
+    if "Joblib" in target:
+        n = _get(launcher, "n_jobs")
+        n = -1 if n is None else int(n)
+        return max(1, cpus + 1 + n if n < 0 else n)
+    if target.endswith("BasicLauncher") or not target:
+        return 1
+    return cpus
+
+
+def _get(cfg: Any, key: str):
+    try:
+        return cfg.get(key)
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def status_line(done: int, failed: int, running: int, jobs: int | None, walls: list[float], workers: int) -> str:
+    """``[sweep] 5/18 done, 0 failed, 2 running, ETA 1m20s``: ETA = mean job wall time so far x jobs
+    left / workers (the workers busy at most with the jobs left)."""
+    finished = done + failed
+    head = f"[sweep] {finished}/{jobs}" if jobs is not None else f"[sweep] {finished}"
+    line = f"{head} done, {failed} failed, {running} running"
+    if jobs is not None:
+        left = max(jobs - finished, 0)
+        if left == 0:
+            return line + ", ETA 0s"
+        if walls:
+            return line + f", ETA {_duration(sum(walls) / len(walls) * left / max(1, min(workers, left)))}"
+        return line + ", ETA ?"
+    return line
+
+
+class SweepStatus:
+    """The sweep's overall status, one line per finished job, printed by the sweep's own process.
+
+    Jobs may run in other processes (joblib's workers), so it polls the sweep folder: a job has
+    started when its ``.hydra/`` record is written and finished when its ``status.json`` is, both
+    after the sweep started (older files are a resumed sweep's earlier run). ``done`` counts the
+    results made or kept (``skipped`` by ``resume=true``), ``failed`` the failures."""
+
+    def __init__(self, sweep_dir: Path, jobs: int | None, workers: int, stream=None, interval: float = 0.2,
+                 since: float | None = None) -> None:
+        self.sweep_dir = Path(sweep_dir)
+        self.jobs, self.workers, self.interval = jobs, max(1, int(workers)), interval
+        self.stream = stream
+        self.since = time.time() if since is None else since
+        self.finished: dict[str, str] = {}
+        self.walls: list[float] = []
+        self.done = self.failed = 0
+        self.lines: list[str] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._mutex = threading.Lock()
+
+    def _fresh(self, p: Path) -> float | None:
+        try:
+            t = p.stat().st_mtime
+        except OSError:
+            return None
+        return t if t >= self.since else None
+
+    def poll(self) -> list[str]:
+        """Read the folder; print (and return) one line per job finished since the last poll."""
+        with self._mutex:
+            new, started = [], 0
+            for d in _job_dirs(self.sweep_dir):
+                if self._fresh(d / ".hydra") is not None or self._fresh(d / ".hydra" / "overrides.yaml") is not None:
+                    started += 1
+                if d.name in self.finished:
+                    continue
+                t = self._fresh(d / "status.json")
+                if t is None:
+                    continue
+                try:
+                    st = json.loads((d / "status.json").read_text(encoding="utf-8"))
+                except (OSError, ValueError):
+                    continue  # being written: next poll
+                status = st.get("status") if isinstance(st, dict) else None
+                if status in ("done", "skipped", "failed"):
+                    new.append((t, d.name, status, st.get("wall_s")))
+            out = []
+            for _, name, status, wall in sorted(new):
+                self.finished[name] = status
+                if status == "failed":
+                    self.failed += 1
+                else:
+                    self.done += 1
+                if status == "done" and isinstance(wall, (int, float)):
+                    self.walls.append(float(wall))
+                running = max(0, min(started - len(self.finished), self.workers))
+                line = status_line(self.done, self.failed, running, self.jobs, self.walls, self.workers)
+                out.append(line)
+                print(line, file=self.stream or sys.stdout, flush=True)
+            self.lines += out
+            return out
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.interval):
+            try:
+                self.poll()
+            except Exception:  # noqa: BLE001 - a status line is never worth a failed sweep
+                pass
+
+    def start(self) -> "SweepStatus":
+        self._thread = threading.Thread(target=self._loop, name="dslearn-sweep-status", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, final: bool = True) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+        if final:
+            try:
+                self.poll()
+            except Exception:  # noqa: BLE001
+                pass
+
+
+def interrupt_active() -> dict | None:
+    """Stop the sweep running in this process (after Ctrl-C): its status poller and folder lock.
+    Returns ``{"dir", "done", "jobs"}`` (``done``: the jobs whose folder holds a complete result), or
+    ``None`` when no sweep is running."""
+    global _ACTIVE
+    cb, _ACTIVE = _ACTIVE, None
+    if cb is None or cb._sweep_dir is None:
+        return None
+    if cb._status is not None:
+        cb._status.stop(final=False)
+    if cb._lock is not None:
+        cb._lock.release()
+        cb._lock = None
+    dirs = _job_dirs(cb._sweep_dir)
+    jobs = cb._jobs if cb._jobs is not None else len(dirs)
+    done = sum(1 for d in dirs if check_complete(d)[0] and (not d.name.isdigit() or int(d.name) < jobs))
+    return {"dir": str(cb._sweep_dir), "done": done, "jobs": jobs}
+
+
 class GatherResults(Callback):
     """Gather the sweep's results table when a multirun ends, and log a sweep summary.
 
@@ -176,6 +342,12 @@ class GatherResults(Callback):
         self.fail_exit = fail_exit
         self._t0: float | None = None
         self._lock: RunLock | None = None
+        self._status: SweepStatus | None = None
+        self._sweep_dir: Path | None = None
+        self._jobs: int | None = None
+
+    def __getstate__(self) -> dict:  # the launcher sends the callbacks to its workers: not the status thread
+        return {**self.__dict__, "_status": None}
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._t0 = time.perf_counter()
@@ -199,9 +371,21 @@ class GatherResults(Callback):
                     "sweep dir has a timestamp; give the same hydra.sweep.dir=... as the interrupted sweep",
                     sweep_dir,
                 )
-        log.info("sweep started: %s (launcher %s)", sweep_dir, config.hydra.launcher.get("_target_", "?"))
+        global _ACTIVE
+        self._sweep_dir, self._jobs = sweep_dir, _EXPECTED_JOBS
+        workers = launcher_workers(config.hydra.launcher)
+        launcher = str(config.hydra.launcher.get("_target_", "?")).rsplit(".", 1)[-1]
+        jobs = f"{self._jobs} jobs" if self._jobs is not None else "jobs"
+        log.info("sweep started: %s in %s (%s, %d at a time)", jobs, sweep_dir, launcher, workers)
+        self._status = SweepStatus(sweep_dir, self._jobs, workers).start()
+        _ACTIVE = self
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        global _ACTIVE
+        if self._status is not None:  # the last jobs' lines before the summary
+            self._status.stop()
+            self._status = None
+        _ACTIVE = None
         sweep_dir = Path(str(config.hydra.sweep.dir))
         table, s = gather_sweep(sweep_dir)
         wall = time.perf_counter() - self._t0 if self._t0 is not None else float("nan")

@@ -391,6 +391,8 @@ def _hydra_task(cfg: DictConfig) -> dict:
         what = "SIGTERM" if isinstance(e, Terminated) else "Ctrl-C"
         _write_status(out_dir, "interrupted", time.perf_counter() - t0, error=f"interrupted ({what})")
         log.warning("%s interrupted (%s); no results written", tag, what)
+        if multirun:  # the sweep's process says the one line (with the resume command): on to it
+            raise
         _say("interrupted", f"{what}: no results written; {out_dir / STATUS_FILE} says interrupted")
         raise SystemExit(143 if isinstance(e, Terminated) else 130)
     finally:
@@ -401,9 +403,9 @@ def _hydra_task(cfg: DictConfig) -> dict:
 def _run_locked(cfg: DictConfig, out_dir: Path, multirun: bool, job: dict, tag: str, t0: float) -> dict:
     from dslearn.io import RESULTS_FILE
 
-    if cfg.get("progress") is None:
+    if cfg.get("progress") is None:  # a sweep's jobs show no bars: the sweep prints one status line per job
         OmegaConf.set_struct(cfg, False)
-        cfg.progress = _progress_default()
+        cfg.progress = False if multirun else _progress_default()
         OmegaConf.set_struct(cfg, True)
     if cfg.get("resume"):
         from dslearn.io import check_complete
@@ -1023,6 +1025,8 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
                         plan["run_dir"] = where
 
             check_jobs(combos, _compose, visit=_visit)
+            if plan is not None and multirun:  # the sweep's job count: its overall status line counts to it
+                plan["jobs"] = len(combos)
     except ConfigError as e:
         return str(e)
     except Exception as e:  # Hydra/OmegaConf composition errors: unknown key, group option, type
@@ -1042,13 +1046,13 @@ def _resolved_run_dir(cfg: DictConfig) -> str | None:
 _BARE_PATH = re.compile(r"[A-Za-z0-9_./:+@%~-]+")
 
 
-def _run_dir_override(run_dir: str) -> str | None:
-    """``hydra.run.dir=<run_dir>`` as an override Hydra parses back to exactly ``run_dir`` (or ``None``)."""
+def _run_dir_override(run_dir: str, key: str = "hydra.run.dir") -> str | None:
+    """``<key>=<run_dir>`` as an override Hydra parses back to exactly ``run_dir`` (or ``None``)."""
     if "${" in run_dir:
         return None
     quoted = "'" + run_dir.replace("\\", "\\\\").replace("'", "\\'") + "'"
     for value in ([run_dir] if _BARE_PATH.fullmatch(run_dir) else []) + [quoted]:
-        line = f"hydra.run.dir={value}"
+        line = f"{key}={value}"
         try:
             if str(parse_override(line).value()) == run_dir:
                 return line
@@ -1289,6 +1293,10 @@ def main(argv: list[str] | None = None) -> None:
         except RunDirBusy as e:  # before Hydra wrote anything into the folder
             _say("run folder busy", f"{e} ({_BUSY_KEYS})")
             raise SystemExit(2)
+        if "jobs" in plan:  # a sweep: its overall status line counts to this
+            from dslearn.callbacks import expect_jobs
+
+            expect_jobs(plan["jobs"])
         global _USER_ARGV
         old = sys.argv
         sys.argv = [old[0] if old else PROG, *hydra_argv]
@@ -1313,9 +1321,55 @@ def main(argv: list[str] | None = None) -> None:
             if old_term is not None:
                 signal.signal(signal.SIGTERM, old_term)
     except KeyboardInterrupt as e:
+        code = 143 if isinstance(e, Terminated) else 130
+        sweep = _interrupted_sweep()
+        if sweep is not None:
+            print(f"{PROG}: interrupted: {sweep['done']} of {sweep['jobs']} jobs done; resume with: "
+                  f"{resume_command(argv, sweep['dir'])}", file=sys.stderr, flush=True)
+            raise SystemExit(code) from None
         what = "SIGTERM" if isinstance(e, Terminated) else "Ctrl-C"
         _say("interrupted", f"{what} before the run started; nothing was written")
-        raise SystemExit(143 if isinstance(e, Terminated) else 130) from None
+        raise SystemExit(code) from None
+
+
+def _interrupted_sweep() -> dict | None:
+    """The sweep this process was running when interrupted (its status poller stopped, its folder lock
+    released, the launcher's worker processes shut down), or ``None`` when no sweep had started."""
+    cb = sys.modules.get("dslearn.callbacks")
+    state = cb.interrupt_active() if cb is not None else None
+    loky = sys.modules.get("joblib.externals.loky.reusable_executor")
+    executor = getattr(loky, "_executor", None) if loky is not None else None
+    if executor is not None:  # workers and their semaphores go now, not at exit (no leaked-semaphore warning)
+        try:
+            executor.shutdown(wait=True, kill_workers=True)
+        except Exception:  # noqa: BLE001
+            pass
+    return state
+
+
+def resume_command(argv: list[str], sweep_dir: str) -> str:
+    """The command line that resumes a sweep: ``argv`` without its ``hydra.sweep.dir`` and ``resume``
+    overrides, then ``hydra.sweep.dir=<sweep_dir>`` (absolute) and ``resume=true``, quoted for a POSIX shell."""
+    import shlex
+
+    keep = []
+    for a in argv:
+        if not a.startswith("-"):
+            try:
+                if parse_override(a).key_or_group in ("hydra.sweep.dir", "resume"):
+                    continue
+            except Exception:  # noqa: BLE001
+                pass
+        keep.append(a)
+    where = os.path.abspath(sweep_dir)
+    line = f"hydra.sweep.dir={where}"  # as the user would write it, where Hydra reads it back as this folder
+    try:
+        plain = str(parse_override(line).value()) == where
+    except Exception:  # noqa: BLE001
+        plain = False
+    if not plain:
+        line = _run_dir_override(where, "hydra.sweep.dir") or line
+    return " ".join(shlex.quote(a) for a in [PROG, *keep, line, "resume=true"])
 
 
 if _SIGINT_BEFORE is not None:  # imported: KeyboardInterrupt again, handled by main()

@@ -27,6 +27,13 @@ import os
 # generic kernels): then every torch.set_num_threads call of the code under test is pinned to that
 # count too, so a threshold that holds only on one CPU's kernel path or one thread count fails in CI.
 _THREADS = int(os.environ.get("DSLEARN_TEST_THREADS", "1"))
+
+# The parsed-data cache (dslearn.data.cache) of the tests' runs goes to a folder of this test session, not the
+# user's ~/.cache/dslearn (subprocesses inherit it); a test of the cache sets its own.
+if "DSLEARN_CACHE_DIR" not in os.environ:
+    import tempfile
+
+    os.environ["DSLEARN_CACHE_DIR"] = tempfile.mkdtemp(prefix="dslearn-test-cache-")
 torch.set_num_threads(_THREADS)
 if "DSLEARN_TEST_THREADS" in os.environ:
     _set = torch.set_num_threads

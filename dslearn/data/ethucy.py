@@ -36,6 +36,7 @@ import pandas as pd
 import torch
 from torch import Tensor
 
+from dslearn.data.cache import cached_arrays
 from dslearn.errors import ConfigError, DataFormatError, check_choice
 
 ENV_ROOT = "DSLEARN_ETHUCY_ROOT"
@@ -109,6 +110,9 @@ def read_trajectories(path: str | Path, frame_step: int | None = None, step_key:
         DataFormatError: ``"<file>:<line>: <what is wrong>"`` (1-based line numbers); an
             empty file is reported at line 1.
         FileNotFoundError: the file does not exist.
+
+    A valid file's parse is cached by its content and ``frame_step`` (:mod:`dslearn.data.cache`;
+    ``$DSLEARN_CACHE_DIR=off`` disables it).
     """
     path = Path(path)
     if path.is_dir():
@@ -117,6 +121,18 @@ def read_trajectories(path: str | Path, frame_step: int | None = None, step_key:
         raw = path.read_bytes()
     except PermissionError:
         raise DataFormatError(f"{path}: cannot be read (permission denied)") from None
+    step = None if frame_step is None else int(frame_step)
+    a = cached_arrays("trajectories", raw, {"frame_step": step}, TRAJECTORY_ARRAYS,
+                      lambda: _parse_trajectories(path, raw, step, step_key))
+    return pd.DataFrame({k: a[k] for k in TRAJECTORY_ARRAYS})
+
+
+#: the parsed columns of a trajectory file: name -> (dtype, ndim) (the cache's layout, :mod:`dslearn.data.cache`)
+TRAJECTORY_ARRAYS = {"frame": ("int64", 1), "ped": ("int64", 1), "x": ("float64", 1), "y": ("float64", 1)}
+
+
+def _parse_trajectories(path: Path, raw: bytes, frame_step: int | None, step_key: str | None) -> dict[str, np.ndarray]:
+    """The strict parse of :func:`read_trajectories`: the columns of :data:`TRAJECTORY_ARRAYS`, sorted by (frame, ped)."""
     lines = _decode(path, raw).splitlines()
     if not lines:
         raise DataFormatError(f"{path}:1: empty file (expected lines 'frame ped x y')")
@@ -165,7 +181,7 @@ def read_trajectories(path: str | Path, frame_step: int | None = None, step_key:
             f"{path}:{j + 1}: duplicate (frame, ped) = ({frame[j]}, {ped[j]}), first seen at line {first}"
         )
     df = df.sort_values(["frame", "ped"], kind="stable").drop(columns="line").reset_index(drop=True)
-    return df
+    return {k: df[k].to_numpy(dtype=dt) for k, (dt, _) in TRAJECTORY_ARRAYS.items()}
 
 
 def _is_number(text: str) -> bool:
@@ -222,8 +238,11 @@ def split_scene(scene: Scene, part: str) -> Scene:
     check_choice("part", part, SPLIT_PARTS)
     if part == "all":
         return scene
-    first = scene.df["file"].map(lambda f: scene.val_first_frame.get(f, np.iinfo(np.int64).max))
-    is_val = scene.df["frame"] >= first
+    files = scene.df["file"].to_numpy()
+    first = np.full(files.shape, np.iinfo(np.int64).max, dtype=np.int64)
+    for f, frame in scene.val_first_frame.items():
+        first[files == f] = frame
+    is_val = scene.df["frame"].to_numpy() >= first
     keep = is_val if part == "val" else ~is_val
     return Scene(name=f"{scene.name}:{part}", dt=scene.dt, convention=scene.convention, df=scene.df[keep].reset_index(drop=True),
                  label=scene.label, val_first_frame=scene.val_first_frame)

@@ -3,6 +3,7 @@ tracking figure draws (the error and the NEES over time, one episode's true and 
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -39,12 +40,12 @@ def nees_band(dof: int, episodes: int, prob: float = 0.95) -> tuple[float, float
     independent episodes, for a consistent estimator (Bar-Shalom et al., 2001, 5.4.2): the sum of
     ``episodes`` NEES values is :math:`\chi^2` with ``dof * episodes`` degrees of freedom, so the band is
     :math:`\chi^2_{n}\big((1 \mp prob)/2\big) / n` with :math:`n = dof \cdot episodes`."""
-    from scipy.stats import chi2
+    from scipy.special import gammaincinv  # scipy.stats.chi2.ppf's own formula, without importing scipy.stats (~1.5 s)
 
     if dof < 1 or episodes < 1 or not 0 < prob < 1:
         raise ValueError(f"nees_band: dof={dof} and episodes={episodes} must be >= 1, prob={prob} in (0, 1)")
     n = dof * episodes
-    lo, hi = chi2.ppf([(1 - prob) / 2, (1 + prob) / 2], n)
+    lo, hi = 2 * gammaincinv(n / 2, np.asarray([(1 - prob) / 2, (1 + prob) / 2]))
     return float(lo) / n, float(hi) / n
 
 

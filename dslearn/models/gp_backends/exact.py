@@ -238,6 +238,13 @@ class OnlineGP(PriorMean, nn.Module):
         transformed parameters). Taken at construction and by :meth:`refactorize`, which every
         hyperparameter change must be followed by (:meth:`fit` does it)."""
         kw = dict(dtype=self.dtype_, device=self.device_)
+        if torch.device(self.device_).type == "meta":  # shapes only (the start-up check's build): GPyTorch's
+            # transforms dispatch to torch._refs there, whose first call imports torch._dynamo (~1.5 s)
+            raw = self.covar_module.base_kernel.raw_lengthscale
+            self._ls = torch.empty(raw.shape, **kw).reshape(-1, 1, 1)
+            self._os = torch.empty(self.num_nodes, **kw)
+            self._noise = torch.empty(self.num_nodes, **kw)
+            return
         self._ls = self.covar_module.base_kernel.lengthscale.detach().to(**kw).reshape(-1, 1, 1).clone()
         self._os = self.outputscale.to(**kw).clone()
         self._noise = self.noise_var.to(**kw).clone()
