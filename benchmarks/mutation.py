@@ -1,6 +1,7 @@
 """Mutation testing of the filtering and fusion code: would the tests notice a small bug?
 
     python benchmarks/mutation.py run [--max-children 2]   # mutate and test (resumable: Ctrl-C, run again)
+    python benchmarks/mutation.py run --sample 500 --seed 0  # a random sample of the mutants (an estimate)
     python benchmarks/mutation.py report                   # kill ratio, survivors -> benchmarks/mutation/
 
 ``run`` tests the last commit: it exports ``HEAD`` into ``.mutation/`` (not tracked; the working tree's
@@ -9,6 +10,11 @@ uncommitted edits are not seen) and calls mutmut there (``pip install mutmut``; 
 ``dslearn/metrics/``, the whole test suite, each mutant against the tests that cover the mutated
 function). mutmut keeps every verdict in ``.mutation/mutants/``, so a second ``run`` tests only what is
 left or what changed since; this is a benchmark, not part of CI (a full run takes hours on two cores).
+
+``run --sample K --seed S`` tests a simple random sample of ``K`` of the mutants (drawn with
+``random.Random(S)`` from their sorted names, kept in ``.mutation/sample.json``), so the kill ratio is
+an estimate with a binomial confidence interval at a fraction of the cost; ``report`` then covers only
+the sample and gives the 95 % Wilson interval.
 
 ``report`` reads those verdicts and writes ``benchmarks/mutation/summary.md`` and ``survivors.csv``:
 the kill ratio per module and overall (killed, timed out or crashed, over every mutant tested), and
@@ -69,11 +75,45 @@ def export_head() -> None:
                 stale.unlink(missing_ok=True)
 
 
-def run(max_children: int) -> int:
-    """Export ``HEAD`` and run (or resume) mutmut there."""
+SAMPLE = WORK / "sample.json"  # the sampled mutant names (run --sample), read by report
+
+
+def _all_names() -> dict[str, int | None]:
+    out = {}
+    for meta in sorted((WORK / "mutants").rglob("*.py.meta")):
+        out.update(json.loads(meta.read_text())["exit_code_by_key"])
+    return out
+
+
+def run(max_children: int, sample: int | None = None, seed: int = 0) -> int:
+    """Export ``HEAD`` and run (or resume) mutmut there; with ``sample``, only a random sample of the
+    mutants (their names, in one ``mutmut run`` call; the ones already judged are not run again)."""
     exe = _mutmut()
     export_head()
-    return subprocess.call([exe, "run", "--max-children", str(max_children)], cwd=WORK)
+    if sample is None:
+        SAMPLE.unlink(missing_ok=True)
+        return subprocess.call([exe, "run", "--max-children", str(max_children)], cwd=WORK)
+    if not _all_names():
+        # generate the mutants and collect which tests cover what (mutmut does both before it filters
+        # by name; a name that matches nothing stops it right after)
+        print("mutation: generating mutants and collecting test coverage (once)", flush=True)
+        subprocess.call([exe, "run", "--max-children", str(max_children), "__no_such_mutant__"], cwd=WORK,
+                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    names = sorted(_all_names())
+    if not names:
+        raise SystemExit("mutation: mutmut generated no mutants (see `mutmut run` in .mutation/)")
+    if sample > len(names):
+        raise SystemExit(f"mutation: --sample {sample} is more than the {len(names)} mutants")
+    import random
+
+    chosen = sorted(random.Random(seed).sample(names, sample))
+    SAMPLE.write_text(json.dumps({"seed": seed, "of": len(names), "names": chosen}, indent=0))
+    verdicts = _all_names()
+    todo = [n for n in chosen if verdicts.get(n) is None]
+    print(f"mutation: sample of {sample} of {len(names)} mutants (seed {seed}); {len(todo)} left to test", flush=True)
+    if not todo:
+        return 0
+    return subprocess.call([exe, "run", "--max-children", str(max_children), *todo], cwd=WORK)
 
 
 def _verdicts() -> dict[str, tuple[str, int | None]]:
@@ -103,8 +143,21 @@ def _explained() -> list[dict]:
     return tomllib.loads(EXPLAINED.read_text())["mutant"]
 
 
+def _wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a binomial proportion ``k / n``."""
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    c = z * (p * (1 - p) / n + z * z / (4 * n * n)) ** 0.5
+    d = 1 + z * z / n
+    return (p + z * z / (2 * n) - c) / d, (p + z * z / (2 * n) + c) / d
+
+
 def report() -> int:
     verdicts = _verdicts()
+    sample = json.loads(SAMPLE.read_text()) if SAMPLE.is_file() else None
+    if sample is not None:
+        verdicts = {k: v for k, v in verdicts.items() if k in set(sample["names"])}
     explained = _explained()
     per_module: dict[str, Counter] = defaultdict(Counter)
     survivors = []
@@ -142,6 +195,15 @@ def report() -> int:
     tested = total["killed"] + total["survived"]
     lines.append(f"| **all** | {tested} | {total['killed']} | {total['survived']} | {sum(n_expl.values())} | "
                  f"**{total['killed'] / max(tested, 1):.1%}** |")
+    if sample is not None:
+        lo, hi = _wilson(total["killed"], tested)
+        n_eq = sum(n_expl.values())
+        lo2, hi2 = _wilson(total["killed"], tested - n_eq)
+        lines += ["", f"A random sample of {len(sample['names'])} of the {sample['of']} mutants "
+                  f"(`run --sample {len(sample['names'])} --seed {sample['seed']}`): kill ratio "
+                  f"{total['killed'] / max(tested, 1):.1%} (95 % Wilson interval {lo:.1%} to {hi:.1%}); "
+                  f"leaving out the {n_eq} explained (equivalent) survivors, "
+                  f"{total['killed'] / max(tested - n_eq, 1):.1%} ({lo2:.1%} to {hi2:.1%})."]
     if total["not tested"]:
         lines += ["", f"{total['not tested']} mutants not tested yet (run again to resume)."]
     unexplained = [s for s in survivors if not s["explained"]]
@@ -150,6 +212,8 @@ def report() -> int:
         lines.append(f"- `{s['module']}` `{s['function']}`: `{s['before']}` -> `{s['after']}` ({s['verdict']})")
     (OUT / "summary.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines[4:4 + len(per_module) + 3]))
+    if sample is not None:
+        print(next(ln for ln in lines if ln.startswith("A random sample")))
     print(f"wrote {OUT.relative_to(ROOT)}/summary.md and survivors.csv; unexplained survivors: {len(unexplained)}")
     return 1 if unexplained or total["not tested"] else 0
 
@@ -158,8 +222,12 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("command", choices=["run", "report"])
     p.add_argument("--max-children", type=int, default=2, help="run: mutants tested in parallel (default 2)")
+    p.add_argument("--sample", type=int, default=None, help="run: test a random sample of this many mutants")
+    p.add_argument("--seed", type=int, default=0, help="run --sample: the sample's seed (default 0)")
     a = p.parse_args(argv)
-    sys.exit(run(a.max_children) if a.command == "run" else report())
+    if a.sample is not None and a.sample < 1:
+        p.error(f"--sample must be a positive number of mutants, got {a.sample}")
+    sys.exit(run(a.max_children, a.sample, a.seed) if a.command == "run" else report())
 
 
 if __name__ == "__main__":
