@@ -85,6 +85,26 @@ def _all_names() -> dict[str, int | None]:
     return out
 
 
+#: started with every Python subprocess of the tests (``PYTHONPATH``): mutmut's coverage pass ("stats") can only
+#: be recorded in mutmut's own process, so a subprocess runs the original code then; under a mutant it runs it
+SITECUSTOMIZE = """import os
+if os.environ.get("MUTANT_UNDER_TEST") == "stats":
+    os.environ["MUTANT_UNDER_TEST"] = ""
+"""
+
+
+def _env() -> dict:
+    """The tests' environment: a test that starts ``dslearn-run`` in a subprocess imports the mutated copy in
+    ``.mutation/mutants`` (the active mutant is passed on in ``MUTANT_UNDER_TEST``), not the installed
+    project, whose working tree may differ from the exported commit."""
+    import os
+
+    hook = WORK / "hook"
+    hook.mkdir(parents=True, exist_ok=True)
+    (hook / "sitecustomize.py").write_text(SITECUSTOMIZE)
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(WORK / "mutants"), str(hook)])}
+
+
 def run(max_children: int, sample: int | None = None, seed: int = 0) -> int:
     """Export ``HEAD`` and run (or resume) mutmut there; with ``sample``, only a random sample of the
     mutants (their names, in one ``mutmut run`` call; the ones already judged are not run again)."""
@@ -92,13 +112,13 @@ def run(max_children: int, sample: int | None = None, seed: int = 0) -> int:
     export_head()
     if sample is None:
         SAMPLE.unlink(missing_ok=True)
-        return subprocess.call([exe, "run", "--max-children", str(max_children)], cwd=WORK)
+        return subprocess.call([exe, "run", "--max-children", str(max_children)], cwd=WORK, env=_env())
     if not _all_names():
         # generate the mutants and collect which tests cover what (mutmut does both before it filters
         # by name; a name that matches nothing stops it right after)
         print("mutation: generating mutants and collecting test coverage (once)", flush=True)
         subprocess.call([exe, "run", "--max-children", str(max_children), "__no_such_mutant__"], cwd=WORK,
-                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_env())
     names = sorted(_all_names())
     if not names:
         raise SystemExit("mutation: mutmut generated no mutants (see `mutmut run` in .mutation/)")
@@ -113,7 +133,7 @@ def run(max_children: int, sample: int | None = None, seed: int = 0) -> int:
     print(f"mutation: sample of {sample} of {len(names)} mutants (seed {seed}); {len(todo)} left to test", flush=True)
     if not todo:
         return 0
-    return subprocess.call([exe, "run", "--max-children", str(max_children), *todo], cwd=WORK)
+    return subprocess.call([exe, "run", "--max-children", str(max_children), *todo], cwd=WORK, env=_env())
 
 
 def _verdicts() -> dict[str, tuple[str, int | None]]:

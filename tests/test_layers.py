@@ -56,6 +56,8 @@ def _modules(root: Path) -> dict[str, Path]:
     """Dotted module name -> file, for every ``.py`` file of the package under ``root``."""
     out = {}
     for path in sorted(root.rglob("*.py")):
+        if path.relative_to(root).parts[0] == "conf":  # the packaged configs (an install's dslearn/conf): data
+            continue
         parts = list(path.relative_to(root.parent).with_suffix("").parts)
         if parts[-1] == "__init__":
             parts = parts[:-1]
