@@ -57,6 +57,7 @@ RUNS: dict[str, tuple[list[str], bool]] = {
                            "task.test_episodes=4", "task.models=[gp,gp_cv,lin,sfm]"], True),
     "forecast_small": (["experiment=ethucy_forecast", "task.quick=true", "task.scenes=[zara1]",
                         "task.predictors=[cv,gp]"], True),
+    "gp_bayes_small": (["experiment=gp_bayes_filters", "task.num_cases=40", "task.num_particles=200"], False),
 }
 
 TIMING = re.compile(r"(?:wall|seconds|_ms$|_s$)")

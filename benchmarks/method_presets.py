@@ -1,8 +1,9 @@
 """The method presets of Yu et al.'s family (``conf/method/<filter>_<model>_<fusion>.yaml``): the distributed
 information filter with an EKF or UKF prediction step x five motion models x three fusions, each a plain
-YAML file that selects the parts of a matrix cell (``dslearn-run task=matrix method=ekf_gp_hybrid``).
+YAML file that selects the parts of a matrix cell (``dslearn-run task=matrix method=ekf_gp_hybrid``), the
+learner among them (the model's natural one: online for the GP, offline for the LSTMs, none for LIN and SFM).
 
-    python benchmarks/method_presets.py           # (re)write the 30 files
+    python benchmarks/method_presets.py           # (re)write the 31 files
     python benchmarks/method_presets.py --check   # exit 1 if a file is missing or differs from what it would write
 
 Other families' presets (``dgpt_*``, ``fg_ekf``, ``rbpf_em``) are written by hand beside these.
@@ -26,6 +27,8 @@ MODELS = {"lin": ("lin", "constant velocity (LIN)"),
           "gp": ("gp_increment", "the increment GP, learned online while tracking (Algorithm 1)"),
           "lstm": ("lstm", "the LSTM, trained offline on the training episodes' tracks"),
           "social_lstm": ("social_lstm", "the social LSTM, trained offline on the training episodes' tracks")}
+#: model preset word -> its conf/learner option (the distributed filter's natural learner for that model)
+LEARNERS = {"lin": "none", "sfm": "none", "gp": "online", "lstm": "offline", "social_lstm": "offline"}
 #: preset word -> (conf/consensus option, what it is)
 FUSIONS = {"individual": ("individual", "no fusion (each node alone)"),
            "hybrid": ("hybrid", "hybrid consensus (L = 4 rounds)"),
@@ -48,7 +51,13 @@ def presets() -> dict[str, str]:
                     f"  - override /model: {m_opt}\n"
                     "  - override /observation: linear\n"
                     f"  - override /consensus: {c_opt}\n"
+                    f"  - override /learner: {LEARNERS[m]}\n"
                 )
+    # the LIN hybrid filter with its numbers learned by backpropagation (learner=backprop: model=lin only)
+    out["ekf_lin_hybrid_backprop.yaml"] = out["ekf_lin_hybrid.yaml"].replace(
+        "hybrid consensus (L = 4 rounds).", "hybrid consensus (L = 4 rounds), Q, R, consensus weights and omega "
+        "learned by backpropagation (learner=backprop).").replace(
+        "method=ekf_lin_hybrid)", "method=ekf_lin_hybrid_backprop)").replace("learner: none", "learner: backprop")
     return out
 
 

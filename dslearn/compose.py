@@ -244,7 +244,7 @@ def _fusion_factory(cfg: DictConfig, s: "_Slots"):
 
 def method_takes(cfg: DictConfig) -> tuple[str, ...]:
     """The parts the method of ``cfg.filter`` takes (its engine's parameters among ``model``,
-    ``observation``, ``fusion``), named by their root groups (``fusion`` is the ``consensus`` group)."""
+    ``observation``, ``fusion``, ``learner``), named by their root groups (``fusion`` is the ``consensus`` group)."""
     import inspect
 
     from hydra.utils import get_object
@@ -256,7 +256,7 @@ def method_takes(cfg: DictConfig) -> tuple[str, ...]:
         params = inspect.signature(get_object(str(target))).parameters
     except Exception as e:  # noqa: BLE001
         raise ConfigError(f"filter._target_={target!r} cannot be imported: {str(e).splitlines()[0]}") from None
-    group = {"model": "model", "observation": "observation", "fusion": "consensus"}
+    group = {"model": "model", "observation": "observation", "fusion": "consensus", "learner": "learner"}
     return tuple(g for p, g in group.items() if p in params)
 
 
@@ -268,7 +268,7 @@ def _scenario_network(cfg: DictConfig, s: "_Slots"):
 
 def _method(cfg: DictConfig, s: "_Slots"):
     """The method of a matrix cell: the ``filter`` part's engine with the parts it takes, each sized for the
-    cell's scenario and sensors."""
+    cell's scenario and sensors, and the ``learner`` part (``None`` where ``learner: null``: the engine's own)."""
     scenario, net, dtype, dev = s["scenario"], s["scenario_network"], s["dtype"], s["device"]
     makers = {
         "model": lambda: build_motion_model(cfg.model, scenario, net, dtype, dev),
@@ -276,6 +276,7 @@ def _method(cfg: DictConfig, s: "_Slots"):
         "observation": lambda: build_observation(cfg.observation, net, dtype, dev),
         "fusion": lambda: build_fusion(cfg.consensus, net),
         "fusion_name": lambda: str(cfg.consensus.name),
+        "learner": lambda: None if cfg.get("learner") is None else build(cfg.learner, "learner"),
         "network": lambda: net,
         "scenario": lambda: scenario,
         "dtype": lambda: dtype,

@@ -88,6 +88,8 @@ class ScenarioSpec:
         units: of the positions (the RMSE's unit).
         networked: the scenario has a communication graph between its nodes.
         source: ``simulated`` or ``recorded`` (a data set).
+        pools: ``(training, test)`` episodes a recorded scenario holds (a run may ask for at most these; the
+            up-front check of ``task=matrix`` refuses more), ``None`` for a simulator (any number).
     """
 
     name: str
@@ -99,6 +101,7 @@ class ScenarioSpec:
     units: str = "m"
     networked: bool = True
     source: str = "simulated"
+    pools: tuple[int, int] | None = None
 
 
 @dataclass

@@ -368,6 +368,13 @@ def _app() -> None:
 
 
 def _hydra_task(cfg: DictConfig) -> dict:
+    if os.environ.get(_MAIN_PID, str(os.getpid())) != str(os.getpid()):
+        # a launcher's worker process: Ctrl-C reaches the whole process group, and the sweep's own process
+        # handles it (it stops the workers and prints the resume command); a worker interrupted mid-job
+        # would only add its traceback
+        import signal
+
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
@@ -1262,11 +1269,35 @@ def version_text() -> str:
 # --------------------------------------------------------------------------------------------
 
 
+def _quiet_interrupts_in_callbacks() -> None:
+    """A Ctrl-C that lands inside a finaliser or a weakref callback is "ignored" by the interpreter, which prints
+    its traceback (``Exception ignored in: ...``) beside the one line this program promises; the interrupt
+    itself reaches the main flow with the signal's next delivery or the launcher's shutdown. Only such
+    KeyboardInterrupts are kept quiet; every other unraisable exception is reported as before."""
+    hook = sys.unraisablehook
+    if getattr(hook, "_dslearn", False):
+        return
+
+    def quiet(unraisable):
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return
+        hook(unraisable)
+
+    quiet._dslearn = True
+    sys.unraisablehook = quiet
+
+
+#: the environment variable that tells a launcher's worker process (which inherits it) from the command's own
+_MAIN_PID = "DSLEARN_RUN_PID"
+
+
 def main(argv: list[str] | None = None) -> None:
     """The ``dslearn-run`` console script (``argv`` defaults to ``sys.argv[1:]``)."""
     if argv is None:
         argv = sys.argv[1:]
     argv = list(argv)
+    _quiet_interrupts_in_callbacks()
+    os.environ[_MAIN_PID] = str(os.getpid())
     try:
         if any(a in ("--help", "-h") for a in argv):
             try:

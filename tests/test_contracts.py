@@ -117,7 +117,7 @@ def _check_lstm(option, cfg, world):
 
 TASKS = {"braga_tbn": "BragaTask", "ethucy_forecast": "EthucyForecastTask", "ethucy_tracking": "EthucyTrackingTask",
          "jiang_fg": "JiangTask", "liu_dgpt": "LiuDgpt", "yu": "YuTask", "yu_faults": "FaultTask",
-         "matrix": "MatrixSettings"}
+         "matrix": "MatrixSettings", "gp_bayes_filters": "GPBayesTask"}
 
 
 def _check_task(option, cfg, world):  # the study's schema and its class (or entry point) in dslearn.studies.<task>
@@ -144,7 +144,7 @@ def _check_filter(option, cfg, world):
         from dslearn.methods.dgpt import DGPTMethod
 
         assert get_object(cfg.filter._target_) is DGPTMethod and "predict" not in cfg.filter
-        assert (cfg.filter.window, cfg.filter.gp_input, cfg.filter.hyper.optimizer) == (10, "temporal", "adam")
+        assert (cfg.filter.window, cfg.filter.gp_input) == (10, "temporal") and "hyper" not in cfg.filter
         return
     if option in ("fg_ekf", "rbpf_em"):  # Jiang's FG + EKF-FG, Braga's RBPF + online EM: the studies' values
         from dslearn.methods.factor_graph import FactorGraphMethod
@@ -155,14 +155,14 @@ def _check_filter(option, cfg, world):
         assert "predict" not in f
         if option == "fg_ekf":  # conf/task/jiang_fg.yaml: max_iter, scenario.initial_state, fg, tracker
             task = _compose("experiment=jiang_fg").task
-            assert f.iterations == task.max_iter and list(f.initial_state) == list(task.scenario.initial_state)
-            assert f.fg == task.fg and f.tracker == task.tracker
+            assert list(f.initial_state) == list(task.scenario.initial_state) and f.tracker == task.tracker
+            assert "fg" not in f and "iterations" not in f  # the identification's: learner=fg_identification
         else:  # conf/task/braga_tbn.yaml: particles, filter noise, resampling, EM, initial modes, kernel
             task = _compose("experiment=braga_tbn").task
             assert (f.num_particles, f.process_noise, f.ess_threshold, f.regularise) == (
                 task.num_particles, task.process_noise, task.ess_threshold, task.resampling.regularise)
-            assert f.em == task.em and f.backward_kernel == task.backward_kernel
-            assert {k: f.modes[k] for k in f.modes} == {k: task.modes[k] for k in ("mu_init", "sigma_init", "pi_init")}
+            assert f.backward_kernel == task.backward_kernel
+            assert "em" not in f and "modes" not in f  # the online EM's: learner=online_em
         return
     f = cfg.filter  # ukf inherits the priors and the learning gate of the default
     assert (f.prior_pos_std, f.prior_vel_std, f.learn_gate_std) == (1000.0, 1000.0, 2.0)
@@ -371,29 +371,70 @@ PRESET_FUSIONS = {"individual", "hybrid", "centralized"}
 def _check_method(option, cfg, world):
     """A preset selects the parts its name says: <filter>_<model>_<fusion> (dgpt_<aggregation rule>)."""
     head, _, rest = option.partition("_")
+    if option == "ekf_lin_hybrid_backprop":  # the LIN hybrid filter, its numbers learned by backpropagation
+        assert {k: cfg[k] for k in ("filter", "model", "observation", "consensus")} == \
+            {k: _compose("method=ekf_lin_hybrid")[k] for k in ("filter", "model", "observation", "consensus")}
+        assert cfg.learner == _compose("learner=backprop").learner
+        return
     if option in ("fg_ekf", "rbpf_em"):  # Jiang's / Braga's method: its filter option (and the statistics part)
         assert cfg.filter == _compose(f"filter={option}").filter
         assert option == "fg_ekf" or cfg.consensus == _compose("consensus=statistics").consensus
+        learner = {"fg_ekf": "fg_identification", "rbpf_em": "online_em"}[option]
+        assert cfg.learner == _compose(f"learner={learner}").learner  # its own learner, set explicitly
         return
     filt = _compose(f"filter={PRESET_FILTERS[head]}").filter
     assert cfg.filter == filt  # the filter option, every key
     if head == "dgpt":
         assert rest in AGGREGATIONS and cfg.consensus == _compose(f"consensus={rest}").consensus
+        assert cfg.learner == _compose("learner=online_hyperparameters").learner
         return
     model, _, fusion = rest.rpartition("_")
+    # the model's natural learner: online for the GP, offline for the LSTMs, none for the fixed models
+    learner = {"gp": "online", "lstm": "offline", "social_lstm": "offline"}.get(model, "none")
+    assert cfg.learner == _compose(f"learner={learner}").learner
     assert fusion in PRESET_FUSIONS and cfg.consensus == _compose(f"consensus={fusion}").consensus
     assert cfg.model == _compose(f"model={PRESET_MODELS[model]}").model
     assert cfg.observation == _compose().observation  # the linear position sensor
 
 
-CHECKS = {"data": _check_data, "method": _check_method, "dataset": _check_dataset, "folds": _check_folds,
+LEARNER_CLASSES = {"online": "OnlineLearning", "offline": "OfflineLearning", "none": "NoLearning",
+                   "online_em": "OnlineEM", "online_hyperparameters": "OnlineHyperparameters",
+                   "fg_identification": "FactorGraphIdentification", "backprop": "BackpropLearning"}
+
+
+def _check_learner(option, cfg, world):
+    """A matrix method's learner: its class, and the paper's settings where it moves them from the study."""
+    from dslearn.learning import learners
+
+    obj = build(cfg.learner, "learner")
+    assert type(obj).__name__ == LEARNER_CLASSES[option] and obj.name == option
+    assert learners.LEARNERS[option] is type(obj)
+    if option == "online_em":  # conf/task/braga_tbn.yaml: the EM and its initial modes
+        task = _compose("experiment=braga_tbn").task
+        assert cfg.learner.em == task.em
+        assert dict(cfg.learner.modes) == {k: task.modes[k] for k in ("mu_init", "sigma_init", "pi_init")}
+    elif option == "fg_identification":  # conf/task/jiang_fg.yaml: max_iter, fg
+        task = _compose("experiment=jiang_fg").task
+        assert cfg.learner.iterations == task.max_iter and cfg.learner.fg == task.fg
+    elif option == "online_hyperparameters":  # conf/task/liu_dgpt.yaml task.hyper
+        task = _compose("experiment=liu_table1").task
+        assert cfg.learner.hyper == task.hyper
+    elif option == "backprop":  # its settings (conf/learner/backprop.yaml) as the learner holds them
+        assert set(cfg.learner) == {"_target_", "epochs", "lr", "batch", "loss", "learn"}
+        assert (obj.epochs, obj.lr, obj.batch, obj.loss, obj.learn) == (30, 0.05, None, "innovation",
+                                                                        ["q", "r", "weights", "omega"])
+    else:  # no settings of its own
+        assert set(cfg.learner) == {"_target_"}
+
+
+CHECKS = {"data": _check_data, "learner": _check_learner, "method": _check_method, "dataset": _check_dataset, "folds": _check_folds,
           "lstm": _check_lstm, "task": _check_task, "filter": _check_filter, "model": _check_model,
           "observation": _check_observation, "consensus": _check_consensus, "network": _check_network,
           "scenario": _check_scenario}
-EXPECTED_OPTIONS = {"data": {"paper", "small"}, "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
+EXPECTED_OPTIONS = {"data": {"paper", "small"}, "learner": set(LEARNER_CLASSES), "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
                     "task": set(TASKS), "filter": {"default", "ukf", "dgpt", "fg_ekf", "rbpf_em"},
                     "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
-                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
+                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "ekf_lin_hybrid_backprop"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
                     "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
                     "network": {"yu", "yu_blind"},
                     "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1",

@@ -12,6 +12,7 @@ from dslearn.episodes import ScenarioSpec
 from dslearn.errors import ConfigError
 from dslearn.fusion.stats_consensus import StatisticsConsensus
 from dslearn.learning.factor_graph.engine import simulate
+from dslearn.learning.learners import FactorGraphIdentification, OnlineEM
 from dslearn.learning.online_em import run_tbn, simulate_and_filter
 from dslearn.methods.dgpt import DGPTMethod
 from dslearn.methods.distributed import DistributedFilter
@@ -106,7 +107,7 @@ def test_jiang_tracker_variance_is_the_ekf_fg_closed_form():
     the CRLB; with a huge obs variance (sigma_y) the refined mean stays at the prediction x0 + v0 = x0."""
     sc = SquaredRangeScenario(num_timings=2, num_samples=5, sigma_y=1.0e6)
     ep = sc.sample(1, sc.network, torch.Generator().manual_seed(0))
-    m = FactorGraphMethod(iterations=3, tracker={"obs_var": "crlb"})
+    m = FactorGraphMethod(tracker={"obs_var": "crlb"}, learner=FactorGraphIdentification(iterations=3))
     est = m.estimate(sc, sc.network, None, ep.measurements, 0)
     p_pred = 10.0 + 10.0 + 1.0
     v = est.cov[0, 0, 0, 0].diagonal()
@@ -119,8 +120,11 @@ SMALL = dict(steps=30, num_particles=24, terrain=8000.0)
 
 
 def _braga(strategy="consensus_10", **kw):
+    """A small scenario and the method; ``em`` / ``modes`` go to its learner (the online EM)."""
     sc = TerrainScenario(steps=SMALL["steps"], terrain={"size_m": SMALL["terrain"]}, seed=kw.pop("seed", 2))
-    m = RBPFMethod(StatisticsConsensus(sc.network.adjacency, strategy), num_particles=SMALL["num_particles"], **kw)
+    learner = OnlineEM(**{k: kw.pop(k) for k in ("em", "modes") if k in kw})
+    m = RBPFMethod(StatisticsConsensus(sc.network.adjacency, strategy), num_particles=SMALL["num_particles"],
+                   learner=learner, **kw)
     return sc, m
 
 
@@ -146,16 +150,39 @@ def test_braga_method_equals_the_study_on_its_runs():
     assert int(ep.visible.sum()) == n * 4 * (SMALL["steps"] + 1)
     for c, strategy in enumerate(strategies):
         m = RBPFMethod(StatisticsConsensus(sc.network.adjacency, strategy), num_particles=SMALL["num_particles"],
-                       modes={"pi_init": pi0})
+                       learner=OnlineEM(modes={"pi_init": pi0}))
         est = m.estimate(sc, sc.network, None, ep.measurements, seed)
         assert torch.equal(est.mean[0, :, 1:], res.est[:, :, c, :, :2].permute(1, 0, 2, 3)), strategy
         assert torch.equal(est.mean[0, :, 0], scn.x[:, :, 0, :2])  # t = 0: the known start
-        assert est.cov is None and est.nodes == ["onboard"]
+        cov = res.pos_cov[:, :, c].permute(1, 0, 2, 3, 4)  # (B, K, S, 2, 2)
+        assert torch.equal(est.cov[0, :, 1:], cov) and not est.cov[0, :, 0].any(), strategy  # t = 0: known
+        assert est.nodes == ["onboard"]
+
+
+def test_rbpf_position_covariance_is_the_particles_spread():
+    """run_tbn's pos_cov: symmetric, positive semi-definite, its trace the squared weighted RMS spread of the
+    particles about their mean (the diagnostics' ``spread``), and zero with a single particle."""
+    seed, n = 2, 1
+    sc, m = _braga(seed=seed)
+    scn = sc.flights(n, episode_streams(seed, "test", 0, n))
+    kw = dict(r0=scn.r[..., 0], gen=Streams.from_keys([(seed, "filter", 0)], (n, 1)))
+    res = run_tbn(scn.y, scn.terrain, scn.x[:, :, 0], ["consensus_10"], m.fusion.weights, m.init, m_dyn(sc),
+                  num_particles=SMALL["num_particles"], diagnostics=True, **kw)
+    cov = res.pos_cov
+    assert cov.shape == (*res.est.shape[:-1], 2, 2)
+    torch.testing.assert_close(cov, cov.transpose(-1, -2), rtol=0, atol=0)
+    assert bool((torch.linalg.eigvalsh(cov) > -1e-9).all())
+    torch.testing.assert_close(cov.diagonal(dim1=-2, dim2=-1).sum(-1), res.diagnostics["spread"].square(),
+                               rtol=1e-10, atol=1e-12)
+    assert float(res.diagnostics["spread"].max()) > 1.0  # the check is not vacuous: the particles do spread
+    one = run_tbn(scn.y, scn.terrain, scn.x[:, :, 0], ["consensus_10"], m.fusion.weights, m.init, m_dyn(sc),
+                  num_particles=1, **{**kw, "gen": Streams.from_keys([(seed, "filter", 0)], (n, 1))})
+    assert not one.pos_cov.any()
 
 
 def test_braga_cell_rows_by_hand():
     """The cell's rows: the study's simulate + run_tbn on the cell's test streams, errors of every platform's
-    own filter (node s -> platform s), RMSE over t = 1..K and the 4 platforms; no NEES (no covariance)."""
+    own filter (node s -> platform s), RMSE over t = 1..K and the 4 platforms; NEES with the particles' covariance."""
     seed, n = 1, 2
     sc, m = _braga(seed=seed)
     df = _cell_rows(sc, m, seed, n, train=1)
@@ -166,7 +193,11 @@ def test_braga_cell_rows_by_hand():
     d2 = (res.est[:, :, 0, :, :2] - scn.x[:, :, 1:, :2].permute(2, 0, 1, 3)).square().sum(-1)  # (K, B, S)
     torch.testing.assert_close(_metric(df, "rmse"), d2.mean((0, 2)).sqrt(), rtol=1e-12, atol=0)
     torch.testing.assert_close(_metric(df, "pos_err"), d2.sqrt().mean((0, 2)), rtol=1e-12, atol=0)
-    assert "nees_pos" not in set(df.metric) and set(df.method) == {"rbpf_em consensus_10"}
+    e = (res.est[:, :, 0, :, :2] - scn.x[:, :, 1:, :2].permute(2, 0, 1, 3)).unsqueeze(-1)  # (K, B, S, 2, 1)
+    p = res.pos_cov[:, :, 0]  # (K, B, S, 2, 2)
+    nees = (e.transpose(-1, -2) @ torch.linalg.solve(p, e)).squeeze((-1, -2))  # (K, B, S)
+    torch.testing.assert_close(_metric(df, "nees_pos"), nees.sum(-1).mean(0) / 8, rtol=1e-10, atol=0)  # 2A = 8
+    assert set(df.method) == {"rbpf_em consensus_10"}
 
 
 def m_dyn(sc):
@@ -228,11 +259,12 @@ def test_fits_and_reasons():
     (["method=rbpf_em", "scenario=braga", "consensus.strategy=average"], "consensus.strategy='average'"),
     (["method=rbpf_em", "scenario=braga", "consensus.strategy=centralised", "consensus.weights=metropolis"],
      "apply to consensus_<q> only"),
-    (["method=rbpf_em", "scenario=braga", "filter.em.init_mode=guess"], "filter.em.init_mode"),
-    (["method=rbpf_em", "scenario=braga", "+filter.em.lr=1"], "filter.em: unknown key(s) ['lr']"),
-    (["method=fg_ekf", "scenario=jiang", "filter.fg.schedule=random"], "filter.fg.schedule"),
+    (["method=rbpf_em", "scenario=braga", "learner.em.init_mode=guess"], "learner.em.init_mode"),
+    (["method=rbpf_em", "scenario=braga", "+learner.em.lr=1"], "learner.em: unknown key(s) ['lr']"),
+    (["method=rbpf_em", "scenario=braga", "learner.modes.sigma_init=[5.0,-1.0]"], "learner.modes"),
+    (["method=fg_ekf", "scenario=jiang", "learner.fg.schedule=random"], "learner.fg.schedule"),
     (["method=fg_ekf", "scenario=jiang", "filter.tracker.process_var=-1"], "filter.tracker.process_var=-1"),
-    (["method=fg_ekf", "scenario=jiang", "filter.iterations=0"], "filter.iterations=0"),
+    (["method=fg_ekf", "scenario=jiang", "learner.iterations=0"], "learner.iterations=0"),
     (["method=fg_ekf", "scenario=jiang", "scenario.coefficients=[[1,2,3]]"], "2 parameters"),
     (["method=rbpf_em", "scenario=braga", "scenario.edges=[[0,1],[2,3]]"], "scenario.edges"),
 ])

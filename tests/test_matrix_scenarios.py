@@ -239,6 +239,73 @@ def test_corridor_pools_network_and_order():
         sc.sample(2, sc.network, episode_streams(0, "test", 0, 2))
 
 
+def test_too_many_recorded_episodes_are_refused_at_composition(monkeypatch):
+    """The pools' sizes are in the scenario's spec once it is built (at composition): a count above them is
+    refused by the up-front check, one line naming the key, the count and the pool, without drawing an episode;
+    the pools' own sizes pass (no off-by-one)."""
+    from dslearn.run import precheck
+
+    assert _corridor().spec.pools == (71, 28)
+    for s in ("yu_two_agents", "liu_s1"):  # a simulator: any number
+        assert build_scenario(_cfg("method=ekf_lin_hybrid", f"scenario={s}")).spec.pools is None
+
+    def no_draw(*a, **k):
+        raise AssertionError("an episode was drawn during the up-front check")
+
+    monkeypatch.setattr(RecordedScenario, "chosen", no_draw)
+    cell = ["task=matrix", "method=ekf_lin_hybrid", "scenario=corridor"]
+    assert precheck([*cell, "task.train_episodes=500"]) == (
+        "task.train_episodes=500: scenario corridor's training pool holds 71 episodes (ask for at most 71) "
+        "or change scenario.episodes (how the recording is cut and split)")
+    msg = precheck([*cell, "task.train_episodes=1", "task.test_episodes=29"])
+    assert msg.startswith("task.test_episodes=29: scenario corridor's test pool holds 28 episodes") and "\n" not in msg
+    assert precheck([*cell, "task.train_episodes=71", "task.test_episodes=28"]) is None
+    # the matrix sweeper's own choice of cells refuses it too (a bad count, never an n/a cell), even for a method
+    # that does not fit the scenario
+    from hydra import compose, initialize_config_dir
+
+    from dslearn.schemas.matrix import select_cells
+
+    combos = [[f"method={m}", f"scenario={s}", "task.train_episodes=100"] for m in ("ekf_lin_hybrid", "fg_ekf")
+              for s in ("yu_two_agents", "corridor")]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
+        def comp(ov):
+            return compose("config", overrides=["task=matrix", *ov])
+
+        assert len(select_cells(combos[:1], comp)[0]) == 1  # yu: a simulator, 100 training episodes are fine
+        for bad in (combos, combos[3:]):
+            with pytest.raises(ConfigError, match=r"^task\.train_episodes=100: scenario corridor's training pool "
+                                                  r"holds 71 episodes"):
+                select_cells(bad, comp)
+
+
+def test_dslearn_run_refuses_too_many_recorded_episodes_before_any_run(tmp_path):
+    """The command: one cell exits 2 with the line and writes no run folder; a sweep with one such cell exits 2
+    before any job starts (no sweep folder)."""
+    import os
+    import subprocess
+    import sys
+
+    run = [str(Path(sys.executable).parent / "dslearn-run")]
+    env = {**os.environ, "CI": "1"}
+    r = subprocess.run([*run, "task=matrix", "method=ekf_lin_hybrid", "scenario=corridor", "task.train_episodes=500",
+                        f"hydra.run.dir={tmp_path / 'one'}"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert r.stderr.strip() == ("dslearn-run: configuration error: task.train_episodes=500: scenario corridor's "
+                                "training pool holds 71 episodes (ask for at most 71) or change scenario.episodes "
+                                "(how the recording is cut and split)"), r.stderr[-2000:]
+    r = subprocess.run([*run, "-m", "experiment=matrix", "method=ekf_lin_hybrid,ekf_sfm_hybrid",
+                        "scenario=yu_two_agents,corridor", "task.train_episodes=2", "task.test_episodes=30",
+                        "hydra/launcher=basic", f"hydra.sweep.dir={tmp_path / 'sweep'}"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert r.stderr.strip().splitlines()[-1] == (
+        "dslearn-run: configuration error: task.test_episodes=30: scenario corridor's test pool holds 28 episodes "
+        "(ask for at most 28) or change scenario.episodes (how the recording is cut and split)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no run folder, no sweep folder, no outputs/
+
+
 def _values(**change):
     c = _cfg("method=ekf_lin_hybrid", "scenario=corridor").scenario
     from omegaconf import OmegaConf
@@ -304,7 +371,7 @@ def test_zara1_is_the_tracking_study_source():
     from dslearn.sim.real import ArenaSettings, EpisodeRecipe, real_source
 
     sc = build_scenario(_cfg("method=ekf_lin_hybrid", "scenario=eth_zara1"))
-    assert sc.spec == ScenarioSpec("eth_zara1", "position", 2, "pv2d", 0.4, 11, "m", True, "recorded")
+    assert sc.spec == ScenarioSpec("eth_zara1", "position", 2, "pv2d", 0.4, 11, "m", True, "recorded", (233, 37))
     ntr, nte = sc.pool_size("train"), sc.pool_size("test")
     recipe = EpisodeRecipe(2, 11, 0.4, 3.0, 4, "mutual", 0.3, "time", 0.2, nte)
     data = real_source(load_scene("zara1", convention="physical"), recipe, ArenaSettings(), 0, ntr, F64, CPU)

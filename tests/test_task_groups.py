@@ -32,20 +32,22 @@ CONTEXT = {
     "ethucy_tracking/synthetic": ["experiment=gp_vs_lstm"],
     "liu_dgpt/s3": ["experiment=liu_table1", "scenario=s3"],
     "matrix": ["task=matrix", "model=lin"],
+    "gp_bayes_filters": ["experiment=gp_bayes_filters"],
 }
 
 #: what each study reads of the root groups (from dslearn/studies/<task>.py)
 READS = {
-    "yu": set(ROOT_GROUPS),  # its parts are the root groups
+    "yu": set(ROOT_GROUPS) - {"learner"},  # its parts are the root groups but a matrix method's learner
     # build_scenario / build_network / build_observation / cfg.filter / cfg.consensus.iterations; the
     # models and fusions of the grid are task.models / task.fusions, the episodes task.*_episodes
     "yu_faults": {"scenario", "network", "observation", "filter", "consensus.iterations"},
     "liu_dgpt": set(),
     # a cell: the scenario, the network part (Yu's scenario places no sensors of its own), the method's engine
-    # (filter) and the parts the distributed filter takes; the episodes are task.*_episodes
-    "matrix": {"scenario", "network", "filter", "model", "observation", "consensus", "method"},
+    # (filter) and the parts the distributed filter takes, its learner among them; the episodes are task.*_episodes
+    "matrix": {"scenario", "network", "filter", "model", "observation", "consensus", "method", "learner"},
     "jiang_fg": set(),
     "braga_tbn": set(),
+    "gp_bayes_filters": set(),
     "ethucy_forecast": set(),
     # the fusion and cm_fused (consensus), the initial prior / gate / prediction step (filter), the sensor
     # model (observation), the root model as the entry gp of task.models
@@ -65,11 +67,13 @@ LINES = {
     "consensus": ("consensus=ci", "consensus.iterations=3"),
     "filter": ("filter=default", "filter.prior_pos_std=500.0"),
     "data": ("data=small", "data.train_episodes=5"),
+    # the learner: an option the matrix's context (model=lin) takes, and the group removed (its default is null)
+    "learner": ("learner=none", "~learner"),
 }
 
 
 def _reads(case: str, line: str) -> bool:
-    key = line.split("=", 1)[0]
+    key = line.split("=", 1)[0].lstrip("+~")
     return any(key == r or key.startswith(r + ".") for r in READS[case])
 
 

@@ -40,6 +40,8 @@ class TBNResult:
 
     Attributes:
         est: (T, R, C, S, 4) posterior-mean states (position, velocity) after step t.
+        pos_cov: (T, R, C, S, 2, 2) the weighted covariance of the particles' positions about ``est`` after
+            step t (the filter's position uncertainty; symmetric by construction).
         mu, sigma: (T, R, C, S, K) parameter estimates after the step-t M-step.
         pi: (T, R, C, S, K, K) TPM estimates.
         diagnostics: with ``diagnostics=True``, per-step (T, R, C, S) traces of the filter (no truth in them):
@@ -57,6 +59,7 @@ class TBNResult:
     pi: Tensor
     counters: dict = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
+    pos_cov: Tensor | None = None
 
 
 def run_tbn(y: Tensor, terrain, x0: Tensor, strategies, weights: Tensor, init: NoiseParams,
@@ -107,6 +110,7 @@ def run_tbn(y: Tensor, terrain, x0: Tensor, strategies, weights: Tensor, init: N
     state = init_state(x0, num_particles, alpha0)
     h = terrain
     est_tr = torch.empty(steps, r_, c_, s_, nx, dtype=dtype, device=device)
+    cov_tr = torch.empty(steps, r_, c_, s_, 2, 2, dtype=dtype, device=device)
     mu_tr = torch.empty(steps, *bshape, k, dtype=dtype, device=device)
     sg_tr = torch.empty_like(mu_tr)
     pi_tr = torch.empty(steps, *bshape, k, k, dtype=dtype, device=device)
@@ -139,18 +143,20 @@ def run_tbn(y: Tensor, terrain, x0: Tensor, strategies, weights: Tensor, init: N
             theta = m_step(glob, theta, sigma_floor=sigma_floor, counters=counters)
         est = posterior_mean(state)
         est_tr[t - 1] = est
+        w = torch.exp(state.logw)
+        dp = state.x[..., :2] - est[..., None, :2]
+        c = torch.einsum("...i,...ia,...ib->...ab", w, dp, dp)
+        cov_tr[t - 1] = 0.5 * (c + c.transpose(-1, -2))  # exactly symmetric
         mu_tr[t - 1] = theta.mu
         sg_tr[t - 1] = theta.sigma
         pi_tr[t - 1] = theta.pi
         if diagnostics:
-            w = torch.exp(state.logw)
-            dp = state.x[..., :2] - est[..., None, :2]
             diag["spread"][t - 1] = torch.einsum("...i,...i->...", w, (dp * dp).sum(-1)).sqrt()
             diag["resampled"][t - 1] = info["resampled"]
             diag["p_mode_last"][t - 1] = torch.einsum("...i,...i->...", w, state.alpha[..., -1])
     if not (torch.isfinite(est_tr).all() and torch.isfinite(mu_tr).all() and torch.isfinite(sg_tr).all()):
         raise FloatingPointError("non-finite estimate in run_tbn (this is a bug: weights are kept in the log domain)")
-    return TBNResult(est_tr, mu_tr, sg_tr, pi_tr, counters, diag)
+    return TBNResult(est_tr, mu_tr, sg_tr, pi_tr, counters, diag, cov_tr)
 
 
 # ----------------------------------------------------------------------------------------- MC harness

@@ -1,8 +1,8 @@
 r"""Liu et al.'s distributed GP tracker (DGPT, FUSION 2022) as a method of the matrix: every sensor is a
 local GP expert on its own sliding window of position measurements, a fusion centre combines the experts'
 predictions with one aggregation rule (the method's fusion part, :class:`~dslearn.fusion.aggregation.AggregationRule`)
-and the experts' shared hyperparameters are learned online from the factorised likelihood
-(:class:`~dslearn.filters.dgpt.HyperConfig`), all by :func:`dslearn.filters.dgpt.track`.
+and the experts' shared hyperparameters are learned online from the factorised likelihood (the method's learner,
+:class:`~dslearn.learning.learners.OnlineHyperparameters`), all by :func:`dslearn.filters.dgpt.track`.
 
 The tracker follows one target: every (episode, target) pair of a scenario is an independent single-target
 episode (the sensors' measurements of that target), all of them one batch of the tracker. Its estimates are
@@ -23,48 +23,14 @@ from typing import Any
 import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
-from dslearn.errors import ConfigError, check_choice, check_positive
-from dslearn.filters.dgpt import GP_INPUTS, OPTIMISERS, HyperConfig, track
+from dslearn.errors import ConfigError, check_choice
+from dslearn.filters.dgpt import GP_INPUTS, HyperConfig, track
+from dslearn.learning.learners import OnlineHyperparameters, refuse
 from dslearn.methods.base import require
 from dslearn.network import SensorNetwork
 
 #: the kind of fusion part the tracker takes (an aggregation rule of local GP experts)
 FUSION_KIND = "aggregation"
-_HYPER_KEYS = tuple(f.name for f in dataclasses.fields(HyperConfig))
-#: hyperparameter box: (lower key, upper key, the initial values that must lie inside)
-_BOX = (("min_noise", "max_noise", ("init_noise",)),
-        ("min_outputscale", "max_outputscale", ("init_outputscale",)),
-        ("min_lengthscale", "max_lengthscale", ("init_lengthscale_t", "init_lengthscale_r")))
-
-
-def hyper_config(hyper: HyperConfig | dict | None, prefix: str = "filter.hyper") -> HyperConfig:
-    """A checked :class:`HyperConfig` from a mapping of its fields (``None``: the defaults). ConfigError
-    naming ``prefix.<key>`` on an unknown key, a value out of range or an initial value outside its box."""
-    if hyper is None:
-        hc = HyperConfig()
-    elif isinstance(hyper, HyperConfig):
-        hc = hyper
-    else:
-        unknown = sorted(str(k) for k in hyper if k not in _HYPER_KEYS)
-        if unknown:
-            raise ConfigError(f"{prefix}: unknown key(s) {unknown}; allowed: {list(_HYPER_KEYS)}")
-        hc = HyperConfig(**dict(hyper))
-    check_choice(f"{prefix}.optimizer", hc.optimizer, OPTIMISERS)
-    for key in ("iters", "iters_first", "max_iters"):
-        v = getattr(hc, key)
-        low = 1 if key == "max_iters" else 0
-        if isinstance(v, bool) or not isinstance(v, int) or v < low:
-            raise ConfigError(f"{prefix}.{key}={v!r} must be an integer >= {low}")
-    if not isinstance(hc.gap_check, bool):
-        raise ConfigError(f"{prefix}.gap_check={hc.gap_check!r} must be true or false")
-    for key in ("lr", "tol", *(k for k in _HYPER_KEYS if k.startswith(("init_", "min_", "max_")) and k != "max_iters")):
-        check_positive(f"{prefix}.{key}", getattr(hc, key))
-    for lo, hi, inits in _BOX:
-        for f in inits:
-            if not getattr(hc, lo) <= getattr(hc, f) <= getattr(hc, hi):
-                raise ConfigError(f"{prefix}.{f}={getattr(hc, f)!r} must lie in [{prefix}.{lo}, {prefix}.{hi}] "
-                                  f"= [{getattr(hc, lo)!r}, {getattr(hc, hi)!r}]")
-    return hc
 
 
 @dataclasses.dataclass
@@ -76,19 +42,21 @@ class DGPTMethod:
             :class:`~dslearn.fusion.aggregation.AggregationRule`, ``kind = "aggregation"``).
         window: the sliding window of every expert, in steps.
         gp_input: ``temporal`` (``x = t``) or ``spatiotemporal`` (``x = (previous estimate, t)``).
-        hyper: the online hyperparameter learning (:class:`~dslearn.filters.dgpt.HyperConfig` or a
-            mapping of its fields).
         fusion_name: the fusion part's label (its ``conf/consensus`` option).
+        learner: the online hyperparameter learning (:class:`~dslearn.learning.learners.OnlineHyperparameters`);
+            ``None``: its defaults (``conf/learner/online_hyperparameters.yaml``). No other learner.
     """
 
     #: the kind of fusion part it takes (the composition's check compares it with the consensus part's ``kind``)
     fusion_kind = FUSION_KIND
+    #: the learners it can use (the first: its own, taken when none is given)
+    learners = ("online_hyperparameters",)
 
     fusion: Any
     window: int = 10
     gp_input: str = "temporal"
-    hyper: Any = None
     fusion_name: str | None = None
+    learner: Any = None
 
     def __post_init__(self) -> None:
         if getattr(self.fusion, "kind", None) != self.fusion_kind:
@@ -100,7 +68,16 @@ class DGPTMethod:
         if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
             raise ConfigError(f"filter.window={self.window!r} must be an integer >= 1 (steps)")
         check_choice("filter.gp_input", self.gp_input, GP_INPUTS)
-        self.hyper = hyper_config(self.hyper)
+        if self.learner is None:
+            self.learner = OnlineHyperparameters()
+        elif not isinstance(self.learner, OnlineHyperparameters):
+            raise refuse(self.learner, "Liu's DGPT (filter=dgpt) learns its experts' hyperparameters online from "
+                                       "the factorised likelihood", self.learners)
+
+    @property
+    def hyper(self) -> HyperConfig:
+        """The online hyperparameter learning's settings (the learner's ``hyper``)."""
+        return self.learner.hyper
 
     @property
     def label(self) -> str:

@@ -1,10 +1,12 @@
 r"""Yu et al.'s method as parts: a distributed information filter (EKF or UKF prediction step) with a motion
-model, an observation model and a fusion strategy, whose motion model learns online while tracking the
-training episodes (Algorithm 1: the GP models) or offline from their true tracks before it (declared by the
-model: the LSTM), or is fixed (LIN, the social force)."""
+model, an observation model and a fusion strategy, and a learner (:mod:`dslearn.learning.learners`): the parts
+learn online while tracking the training episodes (``learner=online``, Algorithm 1: the GP models), the motion
+model offline from their true tracks before it (``learner=offline``: the LSTM) or nothing is learned
+(``learner=none``: LIN, the social force). Without a learner the parts decide (the natural learner)."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any
 
@@ -14,11 +16,18 @@ import torch
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
 from dslearn.filters.distributed import initial_belief
 from dslearn.fusion.strategies import Fusion
+from dslearn.learning.learners import NoLearning, OfflineLearning, OnlineLearning, refuse
+from dslearn.learning.backprop import SUPPORTED_MODELS, BackpropLearning, BackpropParameters, fit
 from dslearn.learning.online import OnlineLearner
+from dslearn.models.constant_velocity import ConstantVelocity
+from dslearn.models.observation import LinearPositionObservation
 from dslearn.methods.base import require
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.network import SensorNetwork
+from dslearn.errors import ConfigError
 from dslearn.types import AGENT_DIM, agents, safe_cholesky
+
+_LOG = logging.getLogger(__name__)
 
 
 @dataclass
@@ -31,7 +40,17 @@ class DistributedFilter:
         prior_pos_std, prior_vel_std: the diffuse prior of a node that knows nothing of a target.
         learn_gate_std: the learning gate of Algorithm 1 (``None``: off).
         model_name: the motion model's label (its ``conf/model`` option).
+        learner: :class:`~dslearn.learning.learners.OnlineLearning` (the parts that learn online learn while
+            tracking the training episodes; needs a motion or observation model that learns online),
+            :class:`~dslearn.learning.learners.OfflineLearning` (the motion model fitted to the training episodes'
+            true tracks, then frozen; an observation model that learns online still does, as with ``online``;
+            needs a model with ``fit_offline``) or :class:`~dslearn.learning.learners.NoLearning`; ``None``: the
+            natural learner of the parts (:func:`natural_learner`). A motion model that learns offline has no
+            weights until trained: it takes ``offline`` only.
     """
+
+    #: the learners it can use
+    learners = ("online", "offline", "none", "backprop")
 
     predict: Any
     model: MotionModel
@@ -41,11 +60,66 @@ class DistributedFilter:
     prior_vel_std: float = 1000.0
     learn_gate_std: float | None = 2.0
     model_name: str = "model"
+    learner: Any = None
+
+    def __post_init__(self) -> None:
+        natural = natural_learner(self.model, self.observation)
+        if self.learner is None:
+            self.learner = natural
+            return
+        allowed = allowed_learners(self.model, self.observation)
+        name = getattr(self.learner, "name", None)
+        if isinstance(self.learner, BackpropLearning):
+            self._check_backprop()
+            return
+        if not isinstance(self.learner, (OnlineLearning, OfflineLearning, NoLearning)):
+            raise refuse(self.learner, "the distributed filter (filter=default|ukf) takes learner=online|offline|none|backprop",
+                         allowed)
+        if name in allowed:
+            return
+        model = f"model {self.model_name}"
+        if self.model.learns_offline:
+            why = f"{model} has no weights until trained offline"
+        elif name == "online":
+            why = f"{model} learns nothing online, nor does the observation model"
+        else:
+            why = f"{model} has no offline fit (fit_offline: lstm, social_lstm, sfm_fit)"
+        raise refuse(self.learner, why, allowed)
+
+    def _check_backprop(self) -> None:
+        """learner=backprop: a linear motion model (model=lin) and the linear position sensor, a fusion with what
+        ``learner.learn`` asks for; a one-line ConfigError otherwise."""
+        if not isinstance(self.model, ConstantVelocity) or not isinstance(self.observation, LinearPositionObservation):
+            raise ConfigError(f"learner=backprop supports model={'|'.join(SUPPORTED_MODELS)} with observation=linear, "
+                              f"not model={self.model_name} with observation {type(self.observation).__name__}")
+        self.learner.check_fusion(self.fusion)
+
+    def _backprop(self, scenario: Scenario, network: SensorNetwork, train: Episodes, ctx, seed: int):
+        """Learn the filter's numbers on the training episodes (:mod:`dslearn.learning.backprop`); the learned parts."""
+        a = self.model.num_agents
+        F = self.model.matrix(ctx.dt)[:AGENT_DIM, :AGENT_DIM]
+        Q = self.model.noise_cov(torch.zeros(1, self.model.state_dim, dtype=torch.float64), ctx)[0, :AGENT_DIM, :AGENT_DIM]
+        R = self.observation.noise_cov(torch.zeros(1, AGENT_DIM, dtype=torch.float64))[0]
+        params = BackpropParameters(a, F, Q, R, self.fusion, network.adjacency, learn=self.learner.learn)
+
+        def init(ep, fusion):
+            return initial_belief(ep, network, ctx.dt, fusion, scenario.area, self.prior_pos_std, self.prior_vel_std)
+
+        lr = self.learner
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            hist = fit(params, train.to(torch.float64, train.meas.device), network, ctx, init, epochs=lr.epochs,
+                       lr=lr.lr, batch=lr.batch, loss=lr.loss, seed=seed, predict_step=self.predict)
+        self.learned = {**params.summary(), "loss": hist.loss, "seconds_per_epoch": hist.seconds_per_epoch}
+        _LOG.info("learner=backprop: %s", {k: v for k, v in self.learned.items() if k != "loss"})
+        return params.detached()
 
     @property
     def label(self) -> str:
         omega = f" ω={self.fusion.omega_label}" if self.fusion.uses_omega and self.fusion.omega_label != "one" else ""
-        return f"{getattr(self.predict, 'name', 'ekf')} {self.model_name} {self.fusion.name}{omega}"
+        own = type(self.learner) is type(natural_learner(self.model, self.observation))
+        extra = "" if own else f" learner={self.learner.name}"
+        return f"{getattr(self.predict, 'name', 'ekf')} {self.model_name} {self.fusion.name}{omega}{extra}"
 
     def fits(self, spec: ScenarioSpec) -> str | None:
         return require(spec, "the distributed filter (position sensors, agents [p, v] in 2-D, a network)",
@@ -53,19 +127,43 @@ class DistributedFilter:
 
     def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
                  seed: int) -> Estimates:
-        ctx, model, fusion = scenario.ctx(), self.model, self.fusion
+        ctx, model, fusion, obs = scenario.ctx(), self.model, self.fusion, self.observation
+        if self.learner.name == "backprop":
+            model, obs, fusion = self._backprop(scenario, network, train, ctx, seed)
         learner = OnlineLearner(
-            network, model, self.observation, fusion, ctx,
+            network, model, obs, fusion, ctx,
             init=lambda ep: initial_belief(ep, network, ctx.dt, fusion, scenario.area, self.prior_pos_std,
                                            self.prior_vel_std),
             predict_step=self.predict, learn_gate_std=self.learn_gate_std,
         )
-        if model.learns_offline:  # declared supervised: learns from the training episodes' true tracks
+        kind = self.learner.name
+        if kind == "offline":  # supervised: learns from the training episodes' true tracks
             model.fit_offline(train.states, ctx.dt, seed=seed)
-        if learner.learnable:
+        if kind in ("online", "offline") and learner.learnable:  # Algorithm 1 (offline: a learning observation model)
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())  # no evaluation at checkpoints
         res = learner.estimate(test)
         return beliefs_to_estimates(res.mean, res.info, network)
+
+
+def natural_learner(model: MotionModel, observation: ObservationModel):
+    """The learner the parts call for: offline for a motion model that learns offline (``fit_offline``), else
+    online where the motion or the observation model learns online, else none."""
+    if model.learns_offline:
+        return OfflineLearning()
+    if model.learnable or observation.learnable:
+        return OnlineLearning()
+    return NoLearning()
+
+
+def allowed_learners(model: MotionModel, observation: ObservationModel) -> tuple[str, ...]:
+    """The learners the distributed filter can use with these parts (the natural one first)."""
+    if model.learns_offline:
+        return ("offline",)
+    if model.learnable or observation.learnable:
+        return ("online", "none")
+    if isinstance(model, ConstantVelocity) and isinstance(observation, LinearPositionObservation):
+        return ("none", "backprop")
+    return ("none",)
 
 
 def beliefs_to_estimates(mean: torch.Tensor, info: torch.Tensor, network: SensorNetwork) -> Estimates:

@@ -22,24 +22,20 @@ import torch
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
 from dslearn.errors import ConfigError, check_choice
 from dslearn.filters.ekf_fg import OBS_VAR_MODES, TrackState, ekf_fg_step, observation_variance, predict
-from dslearn.learning.factor_graph.crlb import CRLB_FORMS, crlb
+from dslearn.learning.factor_graph.crlb import crlb
 from dslearn.learning.factor_graph.engine import TrackerSettings
-from dslearn.learning.factor_graph.identification import GRAPHS, SCHEDULES, compress_measurements, identify
+from dslearn.learning.factor_graph.identification import compress_measurements, identify
+from dslearn.learning.learners import FactorGraphIdentification, refuse
 from dslearn.methods.base import require
 from dslearn.network import SensorNetwork
 from dslearn.sim.squared_range import SquaredRange
 
-#: the factor graph's keys (``filter.fg``) and the tracker's (``filter.tracker``), as in ``conf/task/jiang_fg.yaml``
-FG_KEYS = ("init_guess", "init_guess_mode", "init_var", "prior_var", "relinearize", "taylor_point", "schedule",
-           "damping", "graph", "measurement_var", "crlb_form", "lambda_tol", "converge_tol")
+#: the tracker's keys (``filter.tracker``), as in ``conf/task/jiang_fg.yaml`` (the factor graph's, ``learner.fg``:
+#: :data:`dslearn.learning.learners.FG_DEFAULTS`)
 TRACKER_KEYS = ("initial_state_var", "initial_gradient_var", "process_var", "gradient_var", "obs_var", "gate")
-_CHOICES = {"init_guess_mode": ("fixed", "prediction"), "taylor_point": ("prediction", "guess"),
-            "schedule": SCHEDULES, "graph": GRAPHS, "measurement_var": ("sample", "known"),
-            "crlb_form": CRLB_FORMS, "obs_var": OBS_VAR_MODES}
-#: (key, lower bound, strict); ``None`` allowed for prior_var (no prior node) and gate (off)
-_RANGES = (("init_var", 0.0, True), ("prior_var", 0.0, True), ("damping", 0.0, False), ("lambda_tol", 0.0, False),
-           ("converge_tol", 0.0, True), ("initial_state_var", 0.0, True), ("initial_gradient_var", 0.0, True),
-           ("process_var", 0.0, False), ("gradient_var", 0.0, False), ("gate", 0.0, True))
+#: (key, lower bound, strict); ``None`` allowed for gate (off)
+_RANGES = (("initial_state_var", 0.0, True), ("initial_gradient_var", 0.0, True), ("process_var", 0.0, False),
+           ("gradient_var", 0.0, False), ("gate", 0.0, True))
 #: the reporting node (the study's ``node`` column)
 NODE = "fusion_center"
 
@@ -57,36 +53,32 @@ def _block(value, keys: tuple[str, ...], prefix: str) -> dict:
 
 def _number(key: str, v) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v:
-        raise ConfigError(f"filter.{key}={v!r} must be a number")
+        raise ConfigError(f"{key}={v!r} must be a number")
     return float(v)
 
 
 def tracker_settings(fg: dict, tracker: dict, initial_state) -> TrackerSettings:
-    """Checked :class:`TrackerSettings` from the ``filter.fg`` / ``filter.tracker`` blocks (the defaults of
-    :class:`TrackerSettings` for missing keys: the paper's equations). ConfigError naming the key."""
-    values = {**_block(fg, FG_KEYS, "filter.fg"), **_block(tracker, TRACKER_KEYS, "filter.tracker")}
-    where = {k: f"fg.{k}" for k in FG_KEYS} | {k: f"tracker.{k}" for k in TRACKER_KEYS}
-    for key, allowed in _CHOICES.items():
-        if key in values:
-            check_choice(f"filter.{where[key]}", values[key], allowed)
-    if "relinearize" in values and not isinstance(values["relinearize"], bool):
-        raise ConfigError(f"filter.fg.relinearize={values['relinearize']!r} must be true or false")
+    """Checked :class:`TrackerSettings` from the identification's settings ``fg`` (checked by the learner,
+    :class:`~dslearn.learning.learners.FactorGraphIdentification`) and the ``filter.tracker`` block (the defaults
+    of :class:`TrackerSettings` for missing keys: the paper's equations). ConfigError naming the key."""
+    values = _block(tracker, TRACKER_KEYS, "filter.tracker")
+    if "obs_var" in values:
+        check_choice("filter.tracker.obs_var", values["obs_var"], OBS_VAR_MODES)
     for key, low, strict in _RANGES:
         v = values.get(key)
         if v is None:
-            if key in values and key not in ("prior_var", "gate"):
-                raise ConfigError(f"filter.{where[key]} must be a number, not null")
+            if key in values and key != "gate":
+                raise ConfigError(f"filter.tracker.{key} must be a number, not null")
             continue
-        x = _number(where[key], v)
-        if (x <= low if strict else x < low) or (key == "damping" and x >= 1.0) or x == float("inf"):
-            rule = f"{'>' if strict else '>='} {low:g}" + (" and < 1" if key == "damping" else "")
-            raise ConfigError(f"filter.{where[key]}={v!r} must be {rule} (finite)")
-    for key, v in (("fg.init_guess", values.get("init_guess", (0.0, 0.0))), ("initial_state", initial_state)):
-        if not isinstance(v, (list, tuple)) or len(v) != 2:
-            raise ConfigError(f"filter.{key}={v!r} must be a list of 2 numbers (the source's 2 parameters)")
-        for x in v:
-            _number(key, x)
-    return TrackerSettings.from_config(initial_state=list(initial_state), **values)
+        x = _number(f"filter.tracker.{key}", v)
+        if (x <= low if strict else x < low) or x == float("inf"):
+            raise ConfigError(f"filter.tracker.{key}={v!r} must be {'>' if strict else '>='} {low:g} (finite)")
+    if not isinstance(initial_state, (list, tuple)) or len(initial_state) != 2:
+        raise ConfigError(f"filter.initial_state={initial_state!r} must be a list of 2 numbers (the source's 2 "
+                          f"parameters)")
+    for x in initial_state:
+        _number("filter.initial_state", x)
+    return TrackerSettings.from_config(initial_state=list(initial_state), **dict(fg or {}), **values)
 
 
 @dataclasses.dataclass
@@ -94,21 +86,32 @@ class FactorGraphMethod:
     """FG identification + EKF-FG (Jiang et al.) on any scenario whose sensors measure squared ranges.
 
     Args:
-        iterations: FG message-passing iterations per timing (the study's ``max_iter``).
         initial_state: the tracker's start ``x_{0}`` (the study's ``scenario.initial_state``).
-        fg: the identification's settings (the study's ``fg`` block; missing keys: the paper's choices).
         tracker: the EKF-FG's settings (the study's ``tracker`` block).
+        learner: the identification (:class:`~dslearn.learning.learners.FactorGraphIdentification`: its
+            ``iterations`` per timing, the study's ``max_iter``, and its ``fg`` settings); ``None``: its defaults
+            (``conf/learner/fg_identification.yaml``). No other learner.
     """
 
-    iterations: int = 10
+    #: the learners it can use (the first: its own, taken when none is given)
+    learners = ("fg_identification",)
+
     initial_state: Any = (2.0, -2.0)
-    fg: Any = None
     tracker: Any = None
+    learner: Any = None
 
     def __post_init__(self) -> None:
-        if isinstance(self.iterations, bool) or not isinstance(self.iterations, int) or self.iterations < 1:
-            raise ConfigError(f"filter.iterations={self.iterations!r} must be an integer >= 1")
-        self.settings = tracker_settings(self.fg, self.tracker, self.initial_state)
+        if self.learner is None:
+            self.learner = FactorGraphIdentification()
+        elif not isinstance(self.learner, FactorGraphIdentification):
+            raise refuse(self.learner, "Jiang's EKF-FG (filter=fg_ekf) refines its prediction with the factor "
+                                       "graph's identification at every timing", self.learners)
+        self.settings = tracker_settings(self.learner.fg, self.tracker, self.initial_state)
+
+    @property
+    def iterations(self) -> int:
+        """FG message-passing iterations per timing (the learner's ``iterations``)."""
+        return self.learner.iterations
 
     @property
     def label(self) -> str:

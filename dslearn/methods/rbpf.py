@@ -7,13 +7,14 @@ non-cooperative, centralised or ``q`` rounds of consensus) and each runs the M-s
 What the navigators know besides the readings, as in the paper (Section VI): the terrain map
 (``scenario.terrain``), the start (``scenario.initial_states()``, every particle starts there) and, with
 ``em.init_mode=true``, the altimeter's mode at ``t = 0`` (the scenario's ``t = 0`` entry of the second
-measurement channel). The noise parameters are learned online within every episode (the stochastic
-approximation starts afresh per flight, as in the study): the training episodes teach it nothing.
+measurement channel). The noise parameters are learned online within every episode by the method's learner
+(:class:`~dslearn.learning.learners.OnlineEM`, ``learner=online_em``; the stochastic approximation starts afresh
+per flight, as in the study): the training episodes teach it nothing.
 
 Estimates: node ``s``'s posterior mean of its own position (the particle mean), gathered as one report of
 the four platforms (``nodes = ["onboard"]``: each platform estimated by its own filter; a node has no
-estimate of the others), ``t = 0`` the known start. No covariance (``cov = None``: the study's engine keeps
-the particle mean only). The filter's random numbers of test episode ``i`` come from the stream
+estimate of the others), ``t = 0`` the known start; covariance: the weighted covariance of the particles'
+positions (zero at ``t = 0``), so the matrix reports the RBPF's position NEES too. The filter's random numbers of test episode ``i`` come from the stream
 ``(seed, "filter", i)``, the key of the study's Monte Carlo run ``i`` (``filter_streams=common``).
 """
 
@@ -26,17 +27,15 @@ import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
 from dslearn.errors import ConfigError, check_choice
+from dslearn.learning.learners import OnlineEM, refuse
 from dslearn.learning.online_em import KERNEL_DTYPES, run_tbn
 from dslearn.methods.base import require
-from dslearn.models.jmnls import make_params
 from dslearn.network import SensorNetwork
 from dslearn.sim.terrain import cv_model
 from dslearn.streams import Streams
 
 #: the kind of fusion part the method takes (consensus on sufficient statistics)
 FUSION_KIND = "statistics"
-EM_KEYS = {"eta_exponent": 0.7, "burn_in": 50, "sigma_floor": 1e-3, "init_mode": "true"}
-MODE_KEYS = {"mu_init": [-5.0, 25.0], "sigma_init": [5.0, 5.0], "pi_init": [[0.5, 0.5], [0.5, 0.5]]}
 KERNEL_KEYS = {"jitter_pos": 1.0, "jitter_vel": 0.0, "dtype": None}
 #: the reporting entry: every platform's own filter
 NODE = "onboard"
@@ -72,25 +71,25 @@ class RBPFMethod:
         process_noise: the filters' ``Q_XX = Q_YY`` [(m/s^2)^2] (Eq. 24).
         ess_threshold: resample when ESS < ``ess_threshold * N_P``.
         regularise: post-regularised resampling factor (0: the paper's plain systematic resampling).
-        em: ``eta_exponent`` (``eta_t = t^-a``, in (0.5, 1]), ``burn_in`` (steps before the first M-step),
-            ``sigma_floor``, ``init_mode`` (``true``: start from the known mode at ``t = 0``; ``uniform``).
-        modes: the initial guess of the noise parameters ``mu_init``, ``sigma_init``, ``pi_init``.
         backward_kernel: ``jitter_pos``, ``jitter_vel`` (variances added to ``G Q G^T`` in Eq. 17),
             ``dtype`` (null: the state's; float32 for the ``N x N`` products).
         fusion_name: the fusion part's label (its ``conf/consensus`` option).
+        learner: the online EM (:class:`~dslearn.learning.learners.OnlineEM`: its ``em`` settings and initial
+            ``modes``); ``None``: its defaults (``conf/learner/online_em.yaml``). No other learner.
     """
 
     fusion_kind = FUSION_KIND
+    #: the learners it can use (the first: its own, taken when none is given)
+    learners = ("online_em",)
 
     fusion: Any
     num_particles: int = 300
     process_noise: float = 100.0
     ess_threshold: float = 0.5
     regularise: float = 0.0
-    em: Any = None
-    modes: Any = None
     backward_kernel: Any = None
     fusion_name: str | None = None
+    learner: Any = None
 
     def __post_init__(self) -> None:
         if getattr(self.fusion, "kind", None) != self.fusion_kind:
@@ -104,24 +103,26 @@ class RBPFMethod:
         self.process_noise = _num("process_noise", self.process_noise, 0.0, True)
         self.ess_threshold = _num("ess_threshold", self.ess_threshold, 0.0, False, 1.0)
         self.regularise = _num("regularise", self.regularise, 0.0, False)
-        em = _block(self.em, EM_KEYS, "filter.em")
-        if em["init_mode"] is True:  # `init_mode=true` on the command line is a bool
-            em["init_mode"] = "true"
-        check_choice("filter.em.init_mode", em["init_mode"], ("true", "uniform"))
-        em["eta_exponent"] = _num("em.eta_exponent", em["eta_exponent"], 0.5, True, 1.0)
-        b = em["burn_in"]
-        if isinstance(b, bool) or not isinstance(b, int) or b < 0:
-            raise ConfigError(f"filter.em.burn_in={b!r} must be an integer >= 0")
-        em["sigma_floor"] = _num("em.sigma_floor", em["sigma_floor"], 0.0, True)
-        self.em = em
-        modes = _block(self.modes, MODE_KEYS, "filter.modes")
-        self.init = make_params(modes["mu_init"], modes["sigma_init"], modes["pi_init"], prefix="filter.modes")
-        self.modes = modes
         bk = _block(self.backward_kernel, KERNEL_KEYS, "filter.backward_kernel")
         _num("backward_kernel.jitter_pos", bk["jitter_pos"], 0.0, True)
         _num("backward_kernel.jitter_vel", bk["jitter_vel"], 0.0, False)
         check_choice("filter.backward_kernel.dtype", bk["dtype"], tuple(KERNEL_DTYPES))
         self.backward_kernel = bk
+        if self.learner is None:
+            self.learner = OnlineEM()
+        elif not isinstance(self.learner, OnlineEM):
+            raise refuse(self.learner, "Braga et al.'s RBPF (filter=rbpf_em) learns the altimeter noise with its "
+                                       "online EM", self.learners)
+
+    @property
+    def em(self) -> dict:
+        """The online EM's settings (the learner's ``em``)."""
+        return self.learner.em
+
+    @property
+    def init(self):
+        """The EM's initial noise parameters (the learner's ``modes``)."""
+        return self.learner.init
 
     @property
     def label(self) -> str:
@@ -157,4 +158,6 @@ class RBPFMethod:
                       init_mode=em["init_mode"], regularise=self.regularise)
         est = res.est[:, :, 0, :, :2].permute(1, 0, 2, 3)  # (B, K, S, 2)
         mean = torch.cat([x0[:, None, :, :2], est], 1)[None]  # (1, B, K+1, S, 2)
-        return Estimates(mean, None, [NODE], torch.ones(1, dtype=torch.bool))
+        cov = res.pos_cov[:, :, 0].permute(1, 0, 2, 3, 4)  # (B, K, S, 2, 2): the particles' spread
+        cov = torch.cat([torch.zeros_like(cov[:, :1]), cov], 1)[None]  # t = 0: the known start
+        return Estimates(mean, cov, [NODE], torch.ones(1, dtype=torch.bool))

@@ -9,7 +9,8 @@ from dslearn.schemas.base import (ROOT_GROUPS, TASKS, check_overrides, check_ran
 from dslearn.schemas.core import validate_config  # the root and Yu group schemas; the whole check
 
 #: the modules that register a task schema (one per study)
-TASK_MODULES = ("yu", "yu_faults", "liu_dgpt", "jiang_fg", "braga_tbn", "ethucy_forecast", "ethucy_tracking", "matrix")
+TASK_MODULES = ("yu", "yu_faults", "liu_dgpt", "jiang_fg", "braga_tbn", "ethucy_forecast", "ethucy_tracking", "matrix",
+                "gp_bayes_filters")
 
 for _m in TASK_MODULES:
     try:

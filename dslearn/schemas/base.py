@@ -95,13 +95,17 @@ def check_ranges(node: Any, schema: type, prefix: str) -> None:
 
 
 #: the root config groups a task may read besides its own ``task`` node (``conf/config.yaml``'s defaults)
-ROOT_GROUPS = ("scenario", "network", "model", "observation", "consensus", "filter", "data")
+ROOT_GROUPS = ("scenario", "network", "model", "observation", "consensus", "filter", "data", "learner")
 #: root groups whose options are presets: each selects options of other root groups (``conf/method/*.yaml``:
 #: ``# @package _global_``, ``override /filter: ...``) and sets no key of its own. A task reads a preset group
 #: only where it names it in ``uses`` (a task that reads every root group does not read them)
 PRESET_GROUPS = ("method",)
 #: what a task that does not name a preset group uses instead (unless it says so itself)
 PRESET_INSTEAD = {"method": "method presets select the parts of a matrix cell, task=matrix"}
+#: what a task that does not read the ``learner`` group learns with instead (unless it says so itself): the
+#: learner of a matrix cell's method is a part (``conf/learner``) of task=matrix only
+LEARNER_INSTEAD = {"learner": "what it learns is set by its own keys and parts; learner= selects the learner of a "
+                              "matrix cell's method, task=matrix"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -138,7 +142,7 @@ def register_task(name: str, schema: type, check: Callable[[DictConfig], None] |
         raise TypeError(f"task {name}: uses={bad} names no root group; root groups: {list(ROOT_GROUPS + PRESET_GROUPS)}")
     ConfigStore.instance().store(group="schema/task", name=name, node=schema)
     TASKS[name] = TaskSpec(name, schema, check, uses if callable(uses) else paths,
-                           {**PRESET_INSTEAD, **(instead or {})}, unused)
+                           {**PRESET_INSTEAD, **LEARNER_INSTEAD, **(instead or {})}, unused)
     return schema
 
 

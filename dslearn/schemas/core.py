@@ -67,6 +67,7 @@ TASK_TARGETS: dict[str, str] = {
     "jiang_fg": "dslearn.studies.jiang_fg.JiangFgStudy",
     "braga_tbn": "dslearn.studies.braga_tbn.BragaStudy",
     "matrix": "dslearn.studies.matrix.MatrixCell",
+    "gp_bayes_filters": "dslearn.studies.gp_bayes_filters.GPBayesFiltersStudy",
 }
 #: share of the machine's memory a run may plan to use unless ``+max_memory_gb=...`` says otherwise
 MEMORY_SHARE = 0.75

@@ -59,12 +59,32 @@ class _MetaSlots:
         return self._built[name]
 
 
+def check_pools(cfg: DictConfig, spec) -> None:
+    """A recorded scenario holds so many training and test episodes (``spec.pools``, known once it is built): a
+    cell asking for more is refused here, at composition (the up-front check of a run and of every combination
+    of a sweep, before any job starts), not when it draws them. One line naming the key, the number asked for
+    and the pool's size."""
+    pools = getattr(spec, "pools", None)
+    if pools is None:
+        return
+    over = []
+    for split, word, held in zip(("train", "test"), ("training", "test"), pools):
+        asked = cfg.task.get(f"{split}_episodes")
+        if isinstance(asked, int) and not isinstance(asked, bool) and asked > held:
+            over.append(f"task.{split}_episodes={asked}: scenario {spec.name}'s {word} pool holds {held} episodes "
+                        f"(ask for at most {held})")
+    if over:
+        raise ConfigError("; ".join(over) + " or change scenario.episodes (how the recording is cut and split)")
+
+
 def cell(cfg: DictConfig) -> Cell:
     """The cell of a ``task=matrix`` configuration: its method and scenario built as a run builds them (on the
     meta device, without consuming a random draw of the run) and the method's verdict on the scenario's
-    declared spec (:meth:`dslearn.methods.base.Method.fits`). A configuration that cannot be built raises."""
+    declared spec (:meth:`dslearn.methods.base.Method.fits`). A configuration that cannot be built raises, as does
+    one asking for more episodes than a recorded scenario's pools hold (:func:`check_pools`)."""
     slots = _MetaSlots(cfg)
     spec = slots["scenario"].spec
+    check_pools(cfg, spec)
     with torch.random.fork_rng(devices=[]):
         method = slots["method"]
     return Cell(str(method.label), str(spec.name), str(spec.units), method.fits(spec))
@@ -98,14 +118,20 @@ def judge(cfg: DictConfig) -> dict:
     """The record of one combination of a matrix sweep: ``method`` (label), ``scenario`` (name), ``units``,
     ``reason`` (``None``: the cell fits and runs) and ``unbuilt`` (the method's parts could not be built for
     this scenario: ``reason`` is the error, ``method`` empty). A scenario that cannot be built raises (a bad
-    configuration). A configuration of another task is a job whatever it is (empty labels)."""
+    configuration), as does one asking for more episodes than a recorded scenario holds (:func:`check_pools`:
+    a bad count, never an n/a cell). A configuration of another task is a job whatever it is (empty labels)."""
     if str(cfg.task.get("name")) != "matrix":
         return {"method": "", "scenario": "", "units": "", "reason": None, "unbuilt": False}
+    from dslearn.learning.learners import LearnerRefused
+
     slots = _MetaSlots(cfg)
     spec = slots["scenario"].spec
+    check_pools(cfg, spec)
     try:
         with torch.random.fork_rng(devices=[]):
             method = slots["method"]
+    except LearnerRefused:
+        raise  # a learner the engine cannot use with these parts: a bad configuration on any scenario, never n/a
     except Exception as e:  # noqa: BLE001 - a part that cannot be sized for this scenario (decided in select_cells)
         return {"method": "", "scenario": str(spec.name), "units": str(spec.units), "unbuilt": True,
                 "reason": f"its parts cannot be built for scenario {spec.name}: {_one_line(e)}"}
@@ -165,8 +191,8 @@ def check(cfg: DictConfig) -> None:
 
 def uses(cfg: DictConfig) -> tuple[str, ...]:
     """The root groups a cell reads: the method preset and the scenario; the network part only for a scenario
-    without sensors of its own; the filter (the method's engine) and the parts that engine takes
-    (:func:`dslearn.compose.method_takes`)."""
+    without sensors of its own; the filter (the method's engine) and the parts that engine takes, its learner
+    among them (:func:`dslearn.compose.method_takes`)."""
     from hydra.utils import get_object
 
     from dslearn.compose import method_takes
@@ -179,4 +205,6 @@ register_task("matrix", MatrixSettings, check, uses=uses,
               instead={"network": "this scenario places its own sensors",
                        "model": "this method's engine takes no motion model part",
                        "observation": "this method's engine takes no observation model part",
-                       "consensus": "this method's engine takes no fusion part", "data": "task.train_episodes / task.test_episodes"})
+                       "consensus": "this method's engine takes no fusion part",
+                       "learner": "this method's engine takes no learner part",
+                       "data": "task.train_episodes / task.test_episodes"})

@@ -15,4 +15,7 @@ class YuTask:
     name: str = "yu"
 
 
-register_task("yu", YuTask, uses=ROOT_GROUPS)  # every root group: they are its parts
+#: every root group but the learner (a part of the matrix's methods): its models learn as they declare (Algorithm 1)
+register_task("yu", YuTask, uses=tuple(g for g in ROOT_GROUPS if g != "learner"),
+              instead={"learner": "its models learn as they declare: online while tracking (the GPs, Algorithm 1) "
+                                  "or offline (the LSTM)"})

@@ -214,8 +214,10 @@ class RecordedScenario:
 
     @property
     def spec(self) -> ScenarioSpec:
-        """``A`` recorded pedestrians measured by range-limited position sensors, state ``[p, v]`` per agent."""
-        return ScenarioSpec(self.name, "position", self.num_agents, "pv2d", self.dt, self.steps, source="recorded")
+        """``A`` recorded pedestrians measured by range-limited position sensors, state ``[p, v]`` per agent; the
+        sizes of the training and test pools (known once the scenario is built, at composition)."""
+        return ScenarioSpec(self.name, "position", self.num_agents, "pv2d", self.dt, self.steps, source="recorded",
+                            pools=(self.pool_size("train"), self.pool_size("test")))
 
     def ctx(self) -> StepContext:
         return StepContext(dt=self.dt)

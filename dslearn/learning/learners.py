@@ -1,0 +1,271 @@
+r"""The learner of a matrix method (the ``learner`` config group, ``task=matrix``): what the method's parts learn,
+from what and when. A learner holds its settings, checked at construction; the method's engine (the ``filter``
+part) carries it out and refuses one it cannot use, at composition (:class:`LearnerRefused`).
+
+- :class:`OnlineLearning` (``learner=online``): Yu et al. Algorithm 1: the motion and observation models that
+  learn online learn while the network tracks the training episodes' measurements.
+- :class:`OfflineLearning` (``learner=offline``): supervised: the motion model is fitted once to the training
+  episodes' true tracks (``fit_offline``: the LSTMs, the fitted social force), then frozen.
+- :class:`NoLearning` (``learner=none``): nothing is learned; the parts as configured (a GP without data is
+  its prior mean).
+- :class:`OnlineEM` (``learner=online_em``): Braga et al.'s online EM of the altimeter's noise modes, within
+  each flight.
+- :class:`OnlineHyperparameters` (``learner=online_hyperparameters``): Liu et al.'s online learning of the
+  GP experts' hyperparameters from the factorised likelihood, within each episode.
+- :class:`FactorGraphIdentification` (``learner=fg_identification``): Jiang et al.'s identification of the
+  source over the factor graph at every timing.
+- :class:`~dslearn.learning.backprop.BackpropLearning` (``learner=backprop``): Q, R, the consensus weights,
+  omega and a linear motion model's matrix learned by backpropagating through the distributed information
+  filter and its consensus rounds (innovation likelihood; or supervised).
+
+``learner: null`` (the default): each engine uses its own (natural) learner with these defaults, the values of
+``conf/learner/<name>.yaml``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from dslearn.errors import ConfigError, check_choice, check_positive
+
+
+class LearnerRefused(ConfigError):
+    """A method's engine cannot use the learner it was given (a configuration error, never an n/a cell)."""
+
+
+def refuse(learner: Any, why: str, allowed) -> LearnerRefused:
+    """The one-line refusal of ``learner`` (``learner=<name>: <why>; allowed: learner=a|b``)."""
+    return LearnerRefused(f"learner={learner_name(learner)}: {why}; allowed: learner={'|'.join(allowed)}")
+
+
+def learner_name(learner: Any) -> str:
+    return str(getattr(learner, "name", type(learner).__name__))
+
+
+@dataclass(frozen=True)
+class OnlineLearning:
+    """Yu et al. Algorithm 1: the parts that learn online learn while tracking the training episodes."""
+
+    name: ClassVar[str] = "online"
+
+
+@dataclass(frozen=True)
+class OfflineLearning:
+    """The motion model fitted once to the training episodes' true tracks (``fit_offline``), then frozen."""
+
+    name: ClassVar[str] = "offline"
+
+
+@dataclass(frozen=True)
+class NoLearning:
+    """Nothing is learned: the parts as configured."""
+
+    name: ClassVar[str] = "none"
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+def _block(value: Any, defaults: dict, prefix: str) -> dict:
+    """``defaults`` updated with the mapping ``value`` (``None``: the defaults); ConfigError naming ``prefix`` on
+    something that is not a mapping or on an unknown key."""
+    if value is None:
+        return dict(defaults)
+    if not isinstance(value, dict):
+        raise ConfigError(f"{prefix}={value!r} must be a mapping with keys {list(defaults)}")
+    unknown = sorted(str(k) for k in value if k not in defaults)
+    if unknown:
+        raise ConfigError(f"{prefix}: unknown key(s) {unknown}; allowed: {list(defaults)}")
+    return {**defaults, **value}
+
+
+def _number(key: str, v: Any, low: float | None = None, strict: bool = False, high: float | None = None,
+            extra: str = "") -> float:
+    """``v`` as a finite float within the bounds; ConfigError naming ``key`` otherwise."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v or v in (float("inf"), float("-inf")):
+        raise ConfigError(f"{key}={v!r} must be a finite number")
+    if low is not None and ((v <= low) if strict else (v < low)) or (high is not None and v > high):
+        rule = " and ".join(s for s in (
+            "" if low is None else f"{'>' if strict else '>='} {low:g}",
+            "" if high is None else f"<= {high:g}") if s)
+        raise ConfigError(f"{key}={v!r} must be {rule}{extra}")
+    return float(v)
+
+
+def _integer(key: str, v: Any, low: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < low:
+        raise ConfigError(f"{key}={v!r} must be an integer >= {low}")
+    return v
+
+
+# ------------------------------------------------------------------------------------------- Braga: EM
+#: the online EM's settings and the initial guess of the noise modes (``conf/learner/online_em.yaml``)
+EM_DEFAULTS = {"eta_exponent": 0.7, "burn_in": 50, "sigma_floor": 1e-3, "init_mode": "true"}
+MODE_DEFAULTS = {"mu_init": [-5.0, 25.0], "sigma_init": [5.0, 5.0], "pi_init": [[0.5, 0.5], [0.5, 0.5]]}
+
+
+@dataclass
+class OnlineEM:
+    """Braga et al.'s online EM of the jump-Markov altimeter noise, afresh within each flight.
+
+    Args:
+        em: ``eta_exponent`` (``eta_t = t^-a``, in (0.5, 1]), ``burn_in`` (steps before the first M-step),
+            ``sigma_floor`` [m], ``init_mode`` (``true``: the mode known at ``t = 0``; ``uniform``).
+        modes: the initial guess of the noise parameters ``mu_init``, ``sigma_init``, ``pi_init``.
+    """
+
+    name: ClassVar[str] = "online_em"
+
+    em: Any = field(default_factory=lambda: dict(EM_DEFAULTS))
+    modes: Any = field(default_factory=lambda: {k: (list(map(list, v)) if k == "pi_init" else list(v))
+                                                for k, v in MODE_DEFAULTS.items()})
+
+    def __post_init__(self) -> None:
+        from dslearn.models.jmnls import make_params
+
+        em = _block(self.em, EM_DEFAULTS, "learner.em")
+        if em["init_mode"] is True:  # `init_mode=true` on the command line is a bool
+            em["init_mode"] = "true"
+        check_choice("learner.em.init_mode", em["init_mode"], ("true", "uniform"))
+        em["eta_exponent"] = _number("learner.em.eta_exponent", em["eta_exponent"], 0.5, True, 1.0)
+        _integer("learner.em.burn_in", em["burn_in"], 0)
+        em["sigma_floor"] = _number("learner.em.sigma_floor", em["sigma_floor"], 0.0, True)
+        self.em = em
+        modes = _block(self.modes, MODE_DEFAULTS, "learner.modes")
+        #: the checked initial noise parameters (:class:`~dslearn.models.jmnls.NoiseParams`)
+        self.init = make_params(modes["mu_init"], modes["sigma_init"], modes["pi_init"], prefix="learner.modes")
+        self.modes = modes
+
+
+# ---------------------------------------------------------------------------------- Liu: hyperparameters
+def _hyper_defaults() -> Any:
+    from dslearn.filters.dgpt import HyperConfig
+
+    return HyperConfig()
+
+
+#: hyperparameter box: (lower key, upper key, the initial values that must lie inside)
+_BOX = (("min_noise", "max_noise", ("init_noise",)),
+        ("min_outputscale", "max_outputscale", ("init_outputscale",)),
+        ("min_lengthscale", "max_lengthscale", ("init_lengthscale_t", "init_lengthscale_r")))
+
+
+def hyper_config(hyper: Any, prefix: str = "learner.hyper") -> Any:
+    """A checked :class:`~dslearn.filters.dgpt.HyperConfig` from a mapping of its fields (``None``: the
+    defaults). ConfigError naming ``prefix.<key>`` on an unknown key, a value out of range or an initial value
+    outside its box."""
+    from dslearn.filters.dgpt import OPTIMISERS, HyperConfig
+
+    keys = tuple(f.name for f in dataclasses.fields(HyperConfig))
+    if hyper is None:
+        hc = HyperConfig()
+    elif isinstance(hyper, HyperConfig):
+        hc = hyper
+    else:
+        if not isinstance(hyper, dict):
+            raise ConfigError(f"{prefix}={hyper!r} must be a mapping with keys {list(keys)}")
+        unknown = sorted(str(k) for k in hyper if k not in keys)
+        if unknown:
+            raise ConfigError(f"{prefix}: unknown key(s) {unknown}; allowed: {list(keys)}")
+        hc = HyperConfig(**dict(hyper))
+    check_choice(f"{prefix}.optimizer", hc.optimizer, OPTIMISERS)
+    for key in ("iters", "iters_first", "max_iters"):
+        _integer(f"{prefix}.{key}", getattr(hc, key), 1 if key == "max_iters" else 0)
+    if not isinstance(hc.gap_check, bool):
+        raise ConfigError(f"{prefix}.gap_check={hc.gap_check!r} must be true or false")
+    for key in ("lr", "tol", *(k for k in keys if k.startswith(("init_", "min_", "max_")) and k != "max_iters")):
+        check_positive(f"{prefix}.{key}", getattr(hc, key))
+    for lo, hi, inits in _BOX:
+        for f in inits:
+            if not getattr(hc, lo) <= getattr(hc, f) <= getattr(hc, hi):
+                raise ConfigError(f"{prefix}.{f}={getattr(hc, f)!r} must lie in [{prefix}.{lo}, {prefix}.{hi}] "
+                                  f"= [{getattr(hc, lo)!r}, {getattr(hc, hi)!r}]")
+    return hc
+
+
+@dataclass
+class OnlineHyperparameters:
+    """Liu et al.'s online learning of the GP experts' shared hyperparameters (factorised likelihood), within
+    each episode.
+
+    Args:
+        hyper: :class:`~dslearn.filters.dgpt.HyperConfig` or a mapping of its fields (missing ones: its
+            defaults): the optimiser, its steps, the initial values and the box.
+    """
+
+    name: ClassVar[str] = "online_hyperparameters"
+
+    hyper: Any = field(default_factory=_hyper_defaults)
+
+    def __post_init__(self) -> None:
+        self.hyper = hyper_config(self.hyper, "learner.hyper")
+
+
+# --------------------------------------------------------------------------- Jiang: factor-graph identification
+#: the identification's settings (``conf/learner/fg_identification.yaml``: the paper's choices)
+FG_DEFAULTS = {"init_guess": [0.0, 0.0], "init_guess_mode": "fixed", "init_var": 100.0, "prior_var": None,
+               "relinearize": False, "taylor_point": "prediction", "schedule": "flooding", "damping": 0.0,
+               "graph": "scalar", "measurement_var": "sample", "crlb_form": "trace_inverse", "lambda_tol": 1.0e-8,
+               "converge_tol": 1.0e-3}
+#: (key, lower bound, strict); ``None`` allowed for prior_var (no prior node)
+_FG_RANGES = (("init_var", 0.0, True), ("prior_var", 0.0, True), ("damping", 0.0, False), ("lambda_tol", 0.0, False),
+              ("converge_tol", 0.0, True))
+
+
+@dataclass
+class FactorGraphIdentification:
+    """Jiang et al.'s identification of the source's parameter over the factor graph (Gaussian BP from the
+    sensors' compressed samples) at every timing.
+
+    Args:
+        iterations: message-passing iterations per timing (the study's ``max_iter``).
+        fg: the identification's settings (missing keys: the paper's choices, :data:`FG_DEFAULTS`).
+    """
+
+    name: ClassVar[str] = "fg_identification"
+
+    iterations: int = 10
+    fg: Any = field(default_factory=lambda: {k: (list(v) if isinstance(v, list) else v)
+                                             for k, v in FG_DEFAULTS.items()})
+
+    def __post_init__(self) -> None:
+        from dslearn.learning.factor_graph.crlb import CRLB_FORMS
+        from dslearn.learning.factor_graph.identification import GRAPHS, SCHEDULES
+
+        _integer("learner.iterations", self.iterations, 1)
+        fg = _block(self.fg, FG_DEFAULTS, "learner.fg")
+        choices = {"init_guess_mode": ("fixed", "prediction"), "taylor_point": ("prediction", "guess"),
+                   "schedule": SCHEDULES, "graph": GRAPHS, "measurement_var": ("sample", "known"),
+                   "crlb_form": CRLB_FORMS}
+        for key, allowed in choices.items():
+            check_choice(f"learner.fg.{key}", fg[key], allowed)
+        if not isinstance(fg["relinearize"], bool):
+            raise ConfigError(f"learner.fg.relinearize={fg['relinearize']!r} must be true or false")
+        for key, low, strict in _FG_RANGES:
+            v = fg[key]
+            if v is None:
+                if key != "prior_var":
+                    raise ConfigError(f"learner.fg.{key} must be a number, not null")
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                    or (v <= low if strict else v < low) or (key == "damping" and v >= 1.0):
+                rule = f"{'>' if strict else '>='} {low:g}" + (" and < 1" if key == "damping" else "")
+                raise ConfigError(f"learner.fg.{key}={v!r} must be {rule} (finite)")
+        guess = fg["init_guess"]
+        if not isinstance(guess, (list, tuple)) or len(guess) != 2:
+            raise ConfigError(f"learner.fg.init_guess={guess!r} must be a list of 2 numbers (the source's 2 parameters)")
+        for x in guess:
+            _number("learner.fg.init_guess", x)
+        self.fg = fg
+
+
+#: ``conf/learner/<name>.yaml`` -> its class
+def _backprop():
+    from dslearn.learning.backprop import BackpropLearning
+
+    return BackpropLearning
+
+
+LEARNERS = {c.name: c for c in (OnlineLearning, OfflineLearning, NoLearning, OnlineEM, OnlineHyperparameters,
+                                FactorGraphIdentification, _backprop())}
