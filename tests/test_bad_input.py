@@ -500,7 +500,7 @@ def test_cli_exit_code_2_one_line(tmp_path):
     assert "Traceback" not in r.stderr + r.stdout
 
 
-@pytest.mark.serial  # signals and timing: run alone (the README's second command), not beside other tests
+@pytest.mark.serial  # signals and timing: run alone, before the parallel run (the README's test command)
 def test_cli_ctrl_c_exit_130_status_interrupted(tmp_path):
     run = tmp_path / "run"
     # the child gets SIGINT's default disposition whatever the test runner inherited (a runner

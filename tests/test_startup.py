@@ -179,7 +179,7 @@ def test_device_cuda_without_cuda_refused_before_a_run_folder(tmp_path, monkeypa
     assert not run.exists()
 
 
-@pytest.mark.serial  # signals and timing: run alone (the README's second command), not beside other tests
+@pytest.mark.serial  # signals and timing: run alone, before the parallel run (the README's test command)
 @pytest.mark.parametrize("trigger", ["omegaconf", "torch"])
 def test_ctrl_c_at_start_one_line_exit_130(tmp_path, trigger):
     """Ctrl-C while the program imports itself (omegaconf) or the schemas (torch): one line, 130, nothing made."""

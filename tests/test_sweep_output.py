@@ -111,7 +111,7 @@ def test_sweep_prints_one_status_line_per_job_and_no_launcher_lines(clean_sweep)
     assert json.loads((d / "sweep.json").read_text())["done"] == 4
 
 
-@pytest.mark.serial  # signals and timing: run alone (the README's second command), not beside other tests
+@pytest.mark.serial  # signals and timing: run alone, before the parallel run (the README's test command)
 def test_ctrl_c_in_sweep_one_line_and_resume_command_finishes_it(clean_sweep, tmp_path):
     d = tmp_path / "sweep dir"  # a space: the resume command must quote it
     # the child gets SIGINT's default disposition whatever the test runner inherited
@@ -146,7 +146,7 @@ def test_ctrl_c_in_sweep_one_line_and_resume_command_finishes_it(clean_sweep, tm
     pd.testing.assert_frame_equal(_table(d), _table(clean_sweep[0]))
 
 
-@pytest.mark.serial  # signals and timing: run alone (the README's second command), not beside other tests
+@pytest.mark.serial  # signals and timing: run alone, before the parallel run (the README's test command)
 def test_ctrl_c_in_a_basic_launcher_sweep_in_process(tmp_path, monkeypatch):
     """The basic launcher runs the jobs in this process: an interrupt in job 1 is the sweep's one line."""
     from dslearn.run import main

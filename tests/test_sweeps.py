@@ -158,7 +158,7 @@ def test_default_launcher_is_parallel_and_identical_to_basic(basic_sweep, tmp_pa
     pd.testing.assert_frame_equal(a.drop(columns=["run_dir"]), b.drop(columns=["run_dir"]))
 
 
-@pytest.mark.serial  # signals and timing: run alone (the README's second command), not beside other tests
+@pytest.mark.serial  # signals and timing: run alone, before the parallel run (the README's test command)
 def test_kill_and_resume_equals_uninterrupted(tmp_path):
     """Start a sweep, SIGKILL it after the first job finished, resume: the table equals a clean run's."""
     grid = ["model=gp_increment,lin", "consensus=hybrid,individual", "data.train_episodes=3", "data.test_episodes=2"]
