@@ -26,6 +26,9 @@ HEAVY = ("torch", "gpytorch", "numba")
 # modules the process imported; TRIGGER (optional): send this process SIGINT when that module is imported
 WRAPPER = r"""
 import json, os, signal, sys
+# Ctrl-C as at a terminal: a process started in the background by a shell without job control inherits an
+# ignored SIGINT, and dslearn-run (rightly) keeps ignoring it
+signal.signal(signal.SIGINT, signal.default_int_handler)
 argv, trigger = json.loads(sys.argv[1]), sys.argv[2]
 if trigger:
     class _Hook:
