@@ -105,6 +105,15 @@ def _env() -> dict:
     return {**os.environ, "PYTHONPATH": os.pathsep.join([str(WORK / "mutants"), str(hook)])}
 
 
+def _terminal_sigint() -> None:
+    """In mutmut's process (before it starts): Ctrl-C as at a terminal. A command started in the background by a
+    shell without job control inherits an ignored SIGINT, and the tests that interrupt a run would then fail in
+    mutmut's coverage pass (which stops at the first failing test without saying which)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def run(max_children: int, sample: int | None = None, seed: int = 0) -> int:
     """Export ``HEAD`` and run (or resume) mutmut there; with ``sample``, only a random sample of the
     mutants (their names, in one ``mutmut run`` call; the ones already judged are not run again)."""
@@ -112,13 +121,13 @@ def run(max_children: int, sample: int | None = None, seed: int = 0) -> int:
     export_head()
     if sample is None:
         SAMPLE.unlink(missing_ok=True)
-        return subprocess.call([exe, "run", "--max-children", str(max_children)], cwd=WORK, env=_env())
+        return subprocess.call([exe, "run", "--max-children", str(max_children)], cwd=WORK, env=_env(), preexec_fn=_terminal_sigint)
     if not _all_names():
         # generate the mutants and collect which tests cover what (mutmut does both before it filters
         # by name; a name that matches nothing stops it right after)
         print("mutation: generating mutants and collecting test coverage (once)", flush=True)
         subprocess.call([exe, "run", "--max-children", str(max_children), "__no_such_mutant__"], cwd=WORK,
-                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_env())
+                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_env(), preexec_fn=_terminal_sigint)
     names = sorted(_all_names())
     if not names:
         raise SystemExit("mutation: mutmut generated no mutants (see `mutmut run` in .mutation/)")
@@ -133,7 +142,7 @@ def run(max_children: int, sample: int | None = None, seed: int = 0) -> int:
     print(f"mutation: sample of {sample} of {len(names)} mutants (seed {seed}); {len(todo)} left to test", flush=True)
     if not todo:
         return 0
-    return subprocess.call([exe, "run", "--max-children", str(max_children), *todo], cwd=WORK, env=_env())
+    return subprocess.call([exe, "run", "--max-children", str(max_children), *todo], cwd=WORK, env=_env(), preexec_fn=_terminal_sigint)
 
 
 def _verdicts() -> dict[str, tuple[str, int | None]]:
