@@ -7,10 +7,7 @@ the group; the YAML files hold the dataclasses' defaults."""
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
-import os
 
 import pytest
 import torch
@@ -21,8 +18,9 @@ from dslearn.compose import build, build_study
 from dslearn.conf_paths import CONF_DIR
 from dslearn.errors import ConfigError
 from dslearn.learning import learners as L
-from dslearn.run import main, precheck
+from dslearn.run import precheck
 from dslearn.schemas.base import TASKS
+from test_task_groups import _cli  # dslearn-run in process: (exit code, stderr lines)
 
 OPTIONS = sorted(p.stem for p in (CONF_DIR / "learner").glob("*.yaml"))
 
@@ -149,22 +147,6 @@ def test_engines_refuse_a_learner_they_cannot_use(overrides, needle, allowed):
         api.compose("task=matrix", *overrides)
     msg = str(e.value)
     assert msg.startswith(needle) and msg.endswith(allowed) and "\n" not in msg, msg
-
-
-def _cli(argv):
-    out, err = io.StringIO(), io.StringIO()
-    old = os.environ.get("CI")
-    os.environ["CI"] = "1"
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                main(list(argv))
-                code = 0
-            except SystemExit as e:
-                code = e.code
-    finally:
-        os.environ.pop("CI", None) if old is None else os.environ.__setitem__("CI", old)
-    return code, [ln for ln in err.getvalue().splitlines() if ln.strip()]
 
 
 def test_dslearn_run_exits_2_with_one_line(tmp_path):

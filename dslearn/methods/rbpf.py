@@ -27,7 +27,7 @@ import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
 from dslearn.errors import ConfigError, check_choice
-from dslearn.learning.learners import OnlineEM, refuse
+from dslearn.learning.learners import OnlineEM, _block, refuse
 from dslearn.learning.online_em import KERNEL_DTYPES, run_tbn
 from dslearn.methods.base import require
 from dslearn.network import SensorNetwork
@@ -39,17 +39,6 @@ FUSION_KIND = "statistics"
 KERNEL_KEYS = {"jitter_pos": 1.0, "jitter_vel": 0.0, "dtype": None}
 #: the reporting entry: every platform's own filter
 NODE = "onboard"
-
-
-def _block(value, defaults: dict, prefix: str) -> dict:
-    if value is None:
-        return dict(defaults)
-    if not isinstance(value, dict):
-        raise ConfigError(f"{prefix}={value!r} must be a mapping with keys {list(defaults)}")
-    unknown = sorted(str(k) for k in value if k not in defaults)
-    if unknown:
-        raise ConfigError(f"{prefix}: unknown key(s) {unknown}; allowed: {list(defaults)}")
-    return {**defaults, **value}
 
 
 def _num(key: str, v, low: float, strict: bool, high: float | None = None) -> float:
