@@ -319,8 +319,8 @@ def interrupt_active() -> dict | None:
     cb, _ACTIVE = _ACTIVE, None
     if cb is None or cb._sweep_dir is None:
         return None
-    if cb._status is not None:
-        cb._status.stop(final=False)
+    if cb._status is not None:  # a job that finished before the interrupt still gets its status line
+        cb._status.stop(final=True)
     if cb._lock is not None:
         cb._lock.release()
         cb._lock = None
