@@ -20,6 +20,12 @@ The process noise :math:`Q` is the model's :meth:`~dslearn.models.base.MotionMod
 the prior mean, not an average over the sigma points: for a GP motion model this is its latent
 variance at the mean, the process noise of the GP-UKF (Ko & Fox 2009), and it is the same
 :math:`Q` the EKF step uses, so the two steps differ only in how the mean is propagated.
+With ``expected_variance=True`` (``filter=ukf_mm``: the GP-UKF with moment matching) it is the
+unscented average instead, :math:`Q = \sum_k w^m_k Q(\chi_k)`: for a GP motion model the average of its
+latent variance :math:`\Sigma_f(\chi_k)` over the sigma points (plus the state-independent terms of its
+noise mode), the unscented estimate of :math:`\mathbb E[\Sigma_f(y)]` that the GP-ADF computes exactly
+(:mod:`dslearn.filters.adf`). Only GP motion models have a state-dependent :math:`Q`; with any other model
+the option changes nothing and is refused (:func:`expected_variance_misfit`).
 
 With ``full=True`` the step also returns the statistical linearisation
 :math:`F = P_{xy}^T P^{-1}`, :math:`P_{xy} = \sum_k w^c_k (\chi_k - \hat y)(f(\chi_k) - \hat y^{t|t-1})^T`
@@ -37,8 +43,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import ClassVar
-
 import torch
 from torch import Tensor
 
@@ -138,6 +142,36 @@ def _propagate(model: MotionModel, pts: Tensor, cov: Tensor, ctx: StepContext) -
     return out.movedim(0, -2)
 
 
+def _noise_at(model: MotionModel, pts: Tensor, cov: Tensor, ctx: StepContext) -> Tensor:
+    """The process noise of a per-node (GP) model at every sigma point: ``pts (*B, K, Dx) -> (*B, K, Dx, Dx)``,
+    the points laid out as in :func:`_propagate` (node dimension first, ``ctx.cov`` repeated per point)."""
+    k, dx = pts.shape[-2], pts.shape[-1]
+    batch = pts.shape[:-2]
+    x = pts.reshape(batch[0], -1, dx)
+    c = cov.unsqueeze(-3).expand(*batch, k, dx, dx).reshape(batch[0], -1, dx, dx)
+    return model.noise_cov(x, dataclasses.replace(ctx, cov=c)).reshape(*batch, k, dx, dx)
+
+
+#: the key of the moment-matching option (``conf/filter/ukf_mm.yaml``)
+EXPECTED_VARIANCE_KEY = f"{KEY}.expected_variance"
+
+
+def expected_variance_misfit(model: MotionModel, model_name: str | None = None) -> str | None:
+    """Why ``filter.predict.expected_variance=true`` does not fit ``model`` (``None`` where it does): only a GP
+    motion model (:class:`~dslearn.models.gp.GPMotionModel`, any variant, or the aggregated
+    :class:`~dslearn.models.aggregated.AggregatedGPMotion`) has a state-dependent latent variance to average."""
+    from dslearn.models.aggregated import AggregatedGPMotion
+    from dslearn.models.gp import GPMotionModel
+
+    if isinstance(model, (GPMotionModel, AggregatedGPMotion)):
+        return None
+    what = f"model={model_name}" if model_name else f"the motion model {type(model).__name__}"
+    return (f"{EXPECTED_VARIANCE_KEY}=true (filter=ukf_mm) averages a GP motion model's latent variance over the "
+            f"sigma points; {what} has no state-dependent process noise, so it would change nothing (use "
+            f"{EXPECTED_VARIANCE_KEY}=false, filter=ukf, or a GP model: model=gp|gp_increment|gp_adaptive|gp_cv|"
+            f"gp_window|gp_sgpr|gp_ssgp|gp_rbcm|gp_increment_rbcm)")
+
+
 def ukf_predict(
     mean: Tensor,
     omega: Tensor,
@@ -147,6 +181,7 @@ def ukf_predict(
     alpha: float = 1.0,
     beta: float = 2.0,
     kappa: float = 0.0,
+    expected_variance: bool = False,
 ) -> tuple[Tensor, ...]:
     r"""Unscented prediction of an information-form belief (see the module docstring).
 
@@ -157,20 +192,29 @@ def ukf_predict(
         alpha, beta, kappa: unscented parameters (defaults 1, 2, 0: :math:`\lambda = 0`, the
             centre point carries no mean weight and the points sit at :math:`\pm\sqrt{D_x}` standard
             deviations).
+        expected_variance: ``Q`` the mean-weighted average of ``model.noise_cov`` over the sigma points
+            instead of its value at the prior mean (a GP model only: ConfigError otherwise).
     Returns:
         ``(y_pred (S,B,Dx), q_pred (S,B,Dx), omega_pred (S,B,Dx,Dx))`` and with ``full`` also
         ``P_pred``, the statistical linearisation ``F`` and the process noise ``Q`` (all
         ``(S,B,Dx,Dx)``), as :func:`dslearn.filters.information.predict`.
     """
     check_unscented(alpha, beta, kappa, mean.shape[-1])
+    if expected_variance:
+        reason = expected_variance_misfit(model)
+        if reason is not None:
+            raise ConfigError(reason)
     P = spd_inverse(omega)
     pts, wm, wc, L = _sigma_points(mean, P, alpha, beta, kappa)
     gam = _propagate(model, pts, P, ctx)  # (S, B, K, Dx)
     y_pred = torch.einsum("k,...kd->...d", wm, gam)
     dy = gam - y_pred.unsqueeze(-2)
-    # Q at the prior mean, called last: a GP keeps the solve of this single query for the
-    # data-set update that follows in track() (OnlineGP.append reuses it)
-    Q = model.noise_cov(mean, dataclasses.replace(ctx, cov=P)).to(mean.dtype)
+    if expected_variance:  # the unscented average of Q over the sigma points (moment matching)
+        Q = torch.einsum("k,...kij->...ij", wm.to(mean.dtype), _noise_at(model, pts, P, ctx).to(mean.dtype))
+    else:
+        # Q at the prior mean, called last: a GP keeps the solve of this single query for the
+        # data-set update that follows in track() (OnlineGP.append reuses it)
+        Q = model.noise_cov(mean, dataclasses.replace(ctx, cov=P)).to(mean.dtype)
     P_pred = symmetrize(dy.transpose(-1, -2) @ (wc.unsqueeze(-1) * dy) + Q)
     omega_pred = spd_inverse(P_pred)
     q_pred = (omega_pred @ y_pred.unsqueeze(-1)).squeeze(-1)
@@ -187,23 +231,43 @@ class UnscentedPredict:
     """:func:`ukf_predict` with fixed parameters, callable like
     :func:`dslearn.filters.information.predict` (``(mean, omega, model, ctx, full=False)``).
 
-    Raises :class:`~dslearn.errors.ConfigError` on construction for ``alpha <= 0``, ``beta < 0``
-    or a non-finite ``kappa`` (fields ``filter.predict.alpha`` / ``.beta`` / ``.kappa``), and in
-    :meth:`check_state_dim` or on the first call whose state dimension ``Dx`` has ``Dx + kappa <= 0``,
-    before any model call.
+    Raises :class:`~dslearn.errors.ConfigError` on construction for ``alpha <= 0``, ``beta < 0``,
+    a non-finite ``kappa`` (fields ``filter.predict.alpha`` / ``.beta`` / ``.kappa``) or an
+    ``expected_variance`` that is not a boolean, and in :meth:`check_state_dim` or on the first call
+    whose state dimension ``Dx`` has ``Dx + kappa <= 0``, before any model call. With
+    ``expected_variance`` a motion model without a state-dependent process noise is refused
+    (:meth:`model_misfit` / :meth:`check_model`: the start-up check, the matrix's n/a reason, the first call).
+    Its :attr:`name` is ``ukf``, or ``ukf_mm`` with ``expected_variance``.
     """
 
     alpha: float = 1.0
     beta: float = 2.0
     kappa: float = 0.0
-    name: ClassVar[str] = "ukf"
+    expected_variance: bool = False
 
     def __post_init__(self) -> None:
         check_unscented(self.alpha, self.beta, self.kappa)
+        if not isinstance(self.expected_variance, bool):
+            raise ConfigError(f"{EXPECTED_VARIANCE_KEY}={self.expected_variance!r} must be true or false")
+
+    @property
+    def name(self) -> str:
+        return "ukf_mm" if self.expected_variance else "ukf"
 
     def check_state_dim(self, state_dim: int) -> None:
         """ConfigError unless the parameters suit a state of ``state_dim`` (the start-up check's hook)."""
         check_unscented(self.alpha, self.beta, self.kappa, int(state_dim))
 
+    def model_misfit(self, model: MotionModel, model_name: str | None = None) -> str | None:
+        """Why this step does not fit ``model`` (``None`` where it does): only ``expected_variance`` asks anything."""
+        return expected_variance_misfit(model, model_name) if self.expected_variance else None
+
+    def check_model(self, model: MotionModel, model_name: str | None = None) -> None:
+        reason = self.model_misfit(model, model_name)
+        if reason is not None:
+            raise ConfigError(reason)
+
     def __call__(self, mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext, full: bool = False):
-        return ukf_predict(mean, omega, model, ctx, full, self.alpha, self.beta, self.kappa)
+        if not self.expected_variance:
+            return ukf_predict(mean, omega, model, ctx, full, self.alpha, self.beta, self.kappa)
+        return ukf_predict(mean, omega, model, ctx, full, self.alpha, self.beta, self.kappa, expected_variance=True)

@@ -482,7 +482,10 @@ def estimate_core_memory(cfg: DictConfig) -> dict[str, float]:
       window / inducing / feature budget of a scalable variant), twice while the buffer
       grows, and the test predictions' kernel rows ``(S, B_test, n)``; a learned
       observation GP (``observation=gp``) adds its own (measured: 150 training + 50 test
-      episodes of ``gp_increment`` peak 596 MB above the idle process, this term 776 MB).
+      episodes of ``gp_increment`` peak 596 MB above the idle process, this term 776 MB);
+    * ``adf`` (``filter=adf`` only): the GP-ADF's kept :math:`(K + \sigma^2 I)^{-1}` and data-only kernel
+      factor, two ``cap x cap`` buffers per node (grown by half), and its per-query temporaries
+      (:data:`dslearn.filters.adf.CHUNK_ELEMENTS` elements each, a few at a time).
 
     ``K`` = horizon / dt steps, ``m`` agents, ``S`` nodes. The terms are upper-bound shaped;
     fixed costs (the Python process, torch: ~0.5 GB) are not included.
@@ -514,6 +517,12 @@ def estimate_core_memory(cfg: DictConfig) -> dict[str, float]:
         cap = 128 * math.ceil(max(n, 1) / 128) + 256
         gp += s * (2.0 * cap * cap + 3 * cap * 2 * m) * f8 + s * b_te * n * f8 * 2
     out["gp"] = gp
+    predict = cfg.filter.get("predict") if cfg.get("filter") is not None else None
+    if learns_f and predict is not None and str(predict.get("_target_", "")).startswith("dslearn.filters.adf."):
+        from dslearn.filters.adf import CHUNK_ELEMENTS  # filter=adf: its kept (K + s^2 I)^-1 and kernel factor,
+
+        cap = 1.5 * n + 64  # (S, cap, cap) each, growing by half, and its per-query temporaries
+        out["adf"] = s * 2.0 * cap * cap * f8 + 4.0 * min(CHUNK_ELEMENTS, s * max(b_te, 1) * n * n) * f8
     return out
 
 
@@ -669,7 +678,9 @@ def check_parts(cfg: DictConfig) -> None:
     Built: the scenario, the network (connectivity), the motion model (``task=yu``; ``yu_faults``
     composes ``task.models`` itself) and the observation model, on PyTorch's ``meta`` device (shapes
     only: no memory, whatever the buffer sizes), the fusion (``task=yu``) and the filter's
-    prediction step, checked against the scenario's state dimension (the UKF's ``kappa``). The
+    prediction step, checked against the scenario's state dimension (the UKF's ``kappa``) and, for a step
+    that needs a kind of motion model (``check_model``: ``filter=adf``, ``filter=ukf_mm``), against the run's
+    motion model (``task=yu``) or every model of ``task.models`` (``task=yu_faults``). The
     result is memoised by the groups' content (a sweep repeats the same parts). Raises the
     constructors' :class:`ConfigError`; any other exception (a constructor that cannot run on the
     ``meta`` device) is left to the run, which builds the parts for real.
@@ -684,7 +695,8 @@ def check_parts(cfg: DictConfig) -> None:
         except OmegaConfBaseException as e:
             raise _field_error(k, e) from None
     try:
-        key = json.dumps([str(cfg.task.name), str(cfg.get("dtype")), nodes], sort_keys=True, default=repr)
+        models = OmegaConf.to_container(cfg.task.models) if "models" in cfg.task else None  # task=yu_faults' grid
+        key = json.dumps([str(cfg.task.name), str(cfg.get("dtype")), nodes, models], sort_keys=True, default=repr)
     except (TypeError, ValueError):
         key = None
     if key is None or key not in _PARTS_CACHE:
@@ -716,14 +728,23 @@ def _build_parts(cfg: DictConfig) -> None:
     dtype, meta = C.resolve_dtype(cfg.dtype), torch.device("meta")
     scenario = C.build_scenario(cfg)
     network = C.build_network(cfg)
+    model = None
     if str(cfg.task.name) == "yu":
-        C.build_motion_model(cfg.model, scenario, network, dtype, meta)
+        model = C.build_motion_model(cfg.model, scenario, network, dtype, meta)
         C.build_fusion(cfg.consensus, network)
     C.build_observation(cfg.observation, network, dtype, meta)
     step = C.build_predict(cfg)
     check = getattr(step, "check_state_dim", None)
     if check is not None:
         check(scenario.state_dim)
+    check = getattr(step, "check_model", None)  # a step that needs a kind of motion model (filter=adf|ukf_mm)
+    if check is None:
+        return
+    if model is not None:
+        check(model, str(cfg.model.get("name", "")) or None)
+    elif "models" in cfg.task:  # task=yu_faults: every model of its grid
+        for name, node in C.group_options("model", [str(m) for m in cfg.task.models]).items():
+            check(C.build_motion_model(node, scenario, network, dtype, meta), name)
 
 
 def _check_area(name: str, area) -> None:
