@@ -194,3 +194,60 @@ def test_composition_refuses_unsupported_models():
         ok = compose("config", overrides=["task=matrix", "method=ekf_lin_hybrid_backprop", "scenario=yu_two_agents"])
         _, _, method = build_cell_parts(ok, check_only=True)
         assert method.learner.name == "backprop"
+
+
+def test_train_fusion_individual_learns_alone_then_tracks_with_the_consensus():
+    """learner.train_fusion: the loss runs through no consensus (each node on its own measurements) and the
+    learned numbers are tracked with the configured fusion, its rule weights and omega untouched."""
+    from dslearn.fusion.strategies import Individual
+
+    with pytest.raises(ConfigError, match="learner.train_fusion"):
+        BackpropLearning(train_fusion="alone")
+    with pytest.raises(ConfigError, match=r"train_fusion=individual.*only q, r, model"):
+        BackpropLearning(train_fusion="individual", learn=["q", "omega"])
+    hyb = HybridConsensus(metropolis(line()), 3, 2.0)
+    assert BackpropLearning().training_fusion(hyb) is hyb
+    lr = BackpropLearning(train_fusion="individual", learn=["q", "r"])
+    ind = lr.training_fusion(hyb)
+    assert isinstance(ind, Individual) and ind.iterations == 3
+    assert lr.label == "backprop(individual)" and BackpropLearning().label == "backprop"
+
+    from dslearn import api
+    from dslearn.compose import build_study
+
+    def run(*extra):
+        cfg = api.compose("task=matrix", "method=ekf_lin_hybrid_backprop", "scenario=yu_two_agents",
+                          "task.train_episodes=2", "task.test_episodes=1", "learner.epochs=3", *extra)
+        study = build_study(cfg)
+        df = study.run()
+        return set(df["method"]), study
+
+    labels, ind_run = run("learner.train_fusion=individual", "learner.learn=[q,r]")
+    assert labels == {"ekf lin hybrid learner=backprop(individual)"}, labels
+    labels_c, con_run = run("learner.learn=[q,r]")
+    assert labels_c == {"ekf lin hybrid learner=backprop"}
+    # the loss ran through different filters (no consensus vs hybrid): different first losses and numbers
+    a, b = ind_run.method.learned, con_run.method.learned
+    assert abs(a["loss"][0] - b["loss"][0]) > 1e-3 * abs(b["loss"][0]), (a["loss"], b["loss"])
+    assert max(abs(x - y) for x, y in zip(a["q_diag"], b["q_diag"])) > 1e-6
+
+
+def test_compare_script_writes_its_table(tmp_path):
+    """experiments/backprop/compare.py: one row per scenario and variant, the hand-set and the [q,r] variants
+    share the motion model (same prediction error), the learned ones track with finite errors."""
+    import importlib.util
+    from pathlib import Path
+
+    import pandas as pd
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "backprop" / "compare.py"
+    spec = importlib.util.spec_from_file_location("backprop_compare", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    mod.main(["--scenarios", "yu_two_agents", "--train", "2", "--test", "2", "--out", str(tmp_path)])
+    df = pd.read_csv(tmp_path / "compare.csv").set_index("variant")
+    assert list(df.index) == list(mod.VARIANTS) and (tmp_path / "compare.md").exists()
+    assert df.loc["nodes alone, frozen [q,r]", "pred_err"] == df.loc["hand-set", "pred_err"]
+    assert df.loc["end to end [q,r]", "pred_err"] == df.loc["hand-set", "pred_err"]
+    assert df.loc["end to end [q,r,model]", "pred_err"] != df.loc["hand-set", "pred_err"]
+    assert df[["rmse", "nees_pos", "pred_err"]].notna().all().all()

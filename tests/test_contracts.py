@@ -164,13 +164,18 @@ def _check_filter(option, cfg, world):
             assert f.backward_kernel == task.backward_kernel
             assert "em" not in f and "modes" not in f  # the online EM's: learner=online_em
         return
-    f = cfg.filter  # ukf inherits the priors and the learning gate of the default
+    f = cfg.filter  # ukf, ukf_mm and adf inherit the priors and the learning gate of the default
     assert (f.prior_pos_std, f.prior_vel_std, f.learn_gate_std) == (1000.0, 1000.0, 2.0)
     step = build_predict(cfg)
     if option == "default":
         assert type(step) is ExtendedPredict
-    else:
+    elif option == "adf":  # the GP-ADF: no settings of its own
+        from dslearn.filters.adf import MomentMatchingPredict
+
+        assert type(step) is MomentMatchingPredict and set(f.predict) == {"_target_"} and step.name == "adf"
+    else:  # ukf_mm: the ukf's parameters, the latent variance averaged over the sigma points
         assert type(step) is UnscentedPredict and (step.alpha, step.beta, step.kappa) == (1.0, 2.0, 0.0)
+        assert step.expected_variance is (option == "ukf_mm") and step.name == option
 
 
 GP_MODELS = {  # variant, prior mean, process noise, aggregation rule (None: each node its own GP)
@@ -420,9 +425,9 @@ def _check_learner(option, cfg, world):
         task = _compose("experiment=liu_table1").task
         assert cfg.learner.hyper == task.hyper
     elif option == "backprop":  # its settings (conf/learner/backprop.yaml) as the learner holds them
-        assert set(cfg.learner) == {"_target_", "epochs", "lr", "batch", "loss", "learn"}
-        assert (obj.epochs, obj.lr, obj.batch, obj.loss, obj.learn) == (30, 0.05, None, "innovation",
-                                                                        ["q", "r", "weights", "omega"])
+        assert set(cfg.learner) == {"_target_", "epochs", "lr", "batch", "loss", "learn", "train_fusion"}
+        assert (obj.epochs, obj.lr, obj.batch, obj.loss, obj.learn, obj.train_fusion) == (
+            30, 0.05, None, "innovation", ["q", "r", "weights", "omega"], "consensus")
     else:  # no settings of its own
         assert set(cfg.learner) == {"_target_"}
 
@@ -432,7 +437,7 @@ CHECKS = {"data": _check_data, "learner": _check_learner, "method": _check_metho
           "observation": _check_observation, "consensus": _check_consensus, "network": _check_network,
           "scenario": _check_scenario}
 EXPECTED_OPTIONS = {"data": {"paper", "small"}, "learner": set(LEARNER_CLASSES), "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
-                    "task": set(TASKS), "filter": {"default", "ukf", "dgpt", "fg_ekf", "rbpf_em"},
+                    "task": set(TASKS), "filter": {"default", "ukf", "ukf_mm", "adf", "dgpt", "fg_ekf", "rbpf_em"},
                     "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
                     | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "ekf_lin_hybrid_backprop"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
                     "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
@@ -570,9 +575,14 @@ def test_fusion_contract(option, yu_world):
 # ---------------------------------------------------------------------------- filter: predict
 @pytest.mark.parametrize("option", [o for o in _options("filter") if o not in ("dgpt", "fg_ekf", "rbpf_em")])  # no prediction step
 def test_predict_step_contract(option, yu_world):
-    """Every prediction step equals the Kalman prediction for the linear (constant-velocity) model."""
+    """Every prediction step equals the Kalman prediction for the linear (constant-velocity) model. A step for GP
+    motion models only (``adf``, ``ukf_mm``) refuses it, and is checked on the GP that is that linear model: the
+    constant-velocity prior mean with no data, f(y) = F y + w, w ~ N(0, sigma_f^2 I)."""
     from dslearn.compose import build_predict
+    from dslearn.errors import ConfigError
+    from dslearn.models import GPMotionModel
     from dslearn.models.constant_velocity import ConstantVelocity
+    from dslearn.models.gp_backends import ConstantVelocityMean
 
     cfg, scenario, network = yu_world
     step = build_predict(_compose(f"filter={option}"))
@@ -583,6 +593,11 @@ def test_predict_step_contract(option, yu_world):
     a = torch.randn(2, 3, dx, dx, dtype=torch.float64, generator=gen)
     P = a @ a.transpose(-1, -2) + torch.eye(dx, dtype=torch.float64)
     mean = torch.randn(2, 3, dx, dtype=torch.float64, generator=gen)
+    misfit = getattr(step, "model_misfit", None)
+    if misfit is not None and misfit(model) is not None:
+        with pytest.raises(ConfigError, match=f"filter={option}"):
+            step(mean, torch.linalg.inv(P), model, ctx)
+        model = GPMotionModel(dx, 2, outputscale=0.1, mean=ConstantVelocityMean(ctx.dt))
     y, q, om = step(mean, torch.linalg.inv(P), model, ctx)
     F = model.jacobian(mean, ctx)
     Pp = F @ P @ F.transpose(-1, -2) + model.noise_cov(mean, ctx)

@@ -35,7 +35,7 @@ from dslearn.episodes import Episodes, Measurements
 from dslearn.errors import ConfigError, check_choice
 from dslearn.filters.distributed import TrackResult, track
 from dslearn.filters.information import predict as ekf_predict
-from dslearn.fusion.strategies import Fusion
+from dslearn.fusion.strategies import Fusion, make_fusion
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.types import AGENT_DIM, StepContext, agents
 
@@ -43,6 +43,8 @@ from dslearn.types import AGENT_DIM, StepContext, agents
 LEARNABLE = ("q", "r", "weights", "omega", "model")
 LOSSES = ("innovation", "supervised")
 OPTIMIZERS = ("adam", "lbfgs")
+#: where ``learner=backprop`` trains: through the configured consensus, or each node alone (then frozen)
+TRAIN_FUSIONS = ("consensus", "individual")
 #: the motion models (``conf/model`` options) whose parameters this learner can learn
 SUPPORTED_MODELS = ("lin",)
 #: fusions with consensus weights (``weights``) and with a novel-information weight (``omega``)
@@ -354,6 +356,11 @@ class BackpropLearning:
         batch: episodes per Adam step (``null``: all of them).
         loss: ``innovation`` (measurements only) | ``supervised`` (MSE to the training episodes' true positions).
         learn: which of ``q``, ``r``, ``weights``, ``omega``, ``model`` are learned.
+        train_fusion: ``consensus`` (end to end: the loss backpropagates through the configured fusion and its
+            ``L`` rounds) | ``individual`` (every node trains on its own measurements with no consensus, the
+            numbers shared by the nodes; they are then frozen and tracked with the configured fusion: "train
+            each node offline, then run consensus"; learns no consensus numbers, so ``learn`` lists neither
+            ``weights`` nor ``omega``).
     """
 
     name: ClassVar[str] = "backprop"
@@ -363,6 +370,7 @@ class BackpropLearning:
     batch: Any = None
     loss: str = "innovation"
     learn: Any = field(default_factory=lambda: ["q", "r", "weights", "omega"])
+    train_fusion: str = "consensus"
 
     def __post_init__(self) -> None:
         if isinstance(self.epochs, bool) or not isinstance(self.epochs, int) or self.epochs < 0:
@@ -378,6 +386,21 @@ class BackpropLearning:
         if bad or len(set(learn)) != len(learn):
             raise ConfigError(f"learner.learn={learn!r}: each of {list(LEARNABLE)} at most once")
         self.learn = learn
+        check_choice("learner.train_fusion", self.train_fusion, TRAIN_FUSIONS)
+        if self.train_fusion == "individual" and {"weights", "omega"} & set(learn):
+            raise ConfigError(f"learner.train_fusion=individual learns no consensus numbers: learner.learn={learn!r} "
+                              f"may list only q, r, model")
+
+    @property
+    def label(self) -> str:
+        """The rows' learner label: ``backprop``, or ``backprop(individual)`` where the nodes trained alone."""
+        return self.name if self.train_fusion == "consensus" else f"{self.name}({self.train_fusion})"
+
+    def training_fusion(self, fusion: Fusion) -> Fusion:
+        """The fusion the loss backpropagates through: the configured one, or none (``train_fusion=individual``)."""
+        if self.train_fusion == "consensus":
+            return fusion
+        return make_fusion("individual", torch.as_tensor(fusion.weights), fusion.iterations)
 
     def check_fusion(self, fusion: Fusion) -> None:
         """ConfigError where ``learn`` asks for what the fusion does not have."""

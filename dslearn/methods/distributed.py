@@ -100,7 +100,8 @@ class DistributedFilter:
         F = self.model.matrix(ctx.dt)[:AGENT_DIM, :AGENT_DIM]
         Q = self.model.noise_cov(torch.zeros(1, self.model.state_dim, dtype=torch.float64), ctx)[0, :AGENT_DIM, :AGENT_DIM]
         R = self.observation.noise_cov(torch.zeros(1, AGENT_DIM, dtype=torch.float64))[0]
-        params = BackpropParameters(a, F, Q, R, self.fusion, network.adjacency, learn=self.learner.learn)
+        train_fusion = self.learner.training_fusion(self.fusion)
+        params = BackpropParameters(a, F, Q, R, train_fusion, network.adjacency, learn=self.learner.learn)
 
         def init(ep, fusion):
             return initial_belief(ep, network, ctx.dt, fusion, scenario.area, self.prior_pos_std, self.prior_vel_std)
@@ -112,18 +113,23 @@ class DistributedFilter:
                        lr=lr.lr, batch=lr.batch, loss=lr.loss, seed=seed, predict_step=self.predict)
         self.learned = {**params.summary(), "loss": hist.loss, "seconds_per_epoch": hist.seconds_per_epoch}
         _LOG.info("learner=backprop: %s", {k: v for k, v in self.learned.items() if k != "loss"})
-        return params.detached()
+        model, obs, fusion = params.detached()
+        # train_fusion=individual: the numbers learned by the nodes alone, tracked with the configured fusion
+        return model, obs, (fusion if train_fusion is self.fusion else self.fusion)
 
     @property
     def label(self) -> str:
         omega = f" ω={self.fusion.omega_label}" if self.fusion.uses_omega and self.fusion.omega_label != "one" else ""
         own = type(self.learner) is type(natural_learner(self.model, self.observation))
-        extra = "" if own else f" learner={self.learner.name}"
+        extra = "" if own else f" learner={getattr(self.learner, 'label', self.learner.name)}"
         return f"{getattr(self.predict, 'name', 'ekf')} {self.model_name} {self.fusion.name}{omega}{extra}"
 
     def fits(self, spec: ScenarioSpec) -> str | None:
-        return require(spec, "the distributed filter (position sensors, agents [p, v] in 2-D, a network)",
-                       measurement="position", state="pv2d", networked=True)
+        reason = require(spec, "the distributed filter (position sensors, agents [p, v] in 2-D, a network)",
+                         measurement="position", state="pv2d", networked=True)
+        # a prediction step that needs a kind of motion model (filter=adf: the exact GP; filter=ukf_mm: a GP)
+        misfit = getattr(self.predict, "model_misfit", None) if reason is None else None
+        return reason if misfit is None else misfit(self.model, self.model_name)
 
     def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
                  seed: int) -> Estimates:
