@@ -29,6 +29,9 @@ Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
              at n = 2,400 (full suite only).
   network    a network of S = 10 / 50 / 200 / 1,000 nodes tracking 2 agents for 100 steps with
              online GP learning (hybrid consensus); reference (per-node loops) on the first steps.
+  filters    the cost per step of each prediction step of the distributed filter (filter=default, ukf,
+             ukf_mm, adf) with the GP learned online, S = 10 / 50 / 200 nodes (hybrid consensus), and of one
+             training epoch of learner=backprop against the EKF's forward pass on the same episodes.
   dtype      float32 vs float64 on the same seeds (time and accuracy of the Yu study).
   studies    wall time of the other studies' default runs (``dslearn-run ...`` subprocesses).
 
@@ -57,7 +60,7 @@ import torch
 
 from dslearn.io import atomic_write_csv, atomic_write_text
 
-ALL = ("speed", "reference", "protocol", "gp", "fantasy", "network", "dtype", "studies")
+ALL = ("speed", "reference", "protocol", "gp", "fantasy", "network", "filters", "dtype", "studies")
 
 #: the previous release's figures on the project's 2-core machine (AMD EPYC, torch 2.13 CPU), the
 #: denominators of the ``speed`` workload's ratios: one GP consensus configuration (gp / hybrid
@@ -103,6 +106,7 @@ def machine_info() -> dict:
 def _compose(overrides):
     from hydra import compose, initialize_config_dir
 
+    import dslearn.schemas  # noqa: F401  (registers the task schemas the configs name)
     from dslearn.run import CONF_DIR
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
@@ -327,11 +331,11 @@ def item_fantasy(n: int = 2400, dim: int = 8, steps: int = 2) -> list[dict]:
     return rows
 
 
-def _network_cfg(nodes: int, steps: int, model: str = "gp_increment"):
+def _network_cfg(nodes: int, steps: int, model: str = "gp_increment", extra: tuple = ()):
     sensors = 4 if nodes == 10 else max(1, round(0.4 * nodes))
+    gp = ["+model.capacity=128"] if model.startswith("gp") else []
     return _compose([f"model={model}", "consensus=hybrid", f"network.num_sensors={sensors}", f"network.num_comm={nodes - sensors}",
-                     f"scenario.horizon={steps * 0.25}", "data.train_episodes=1", "data.test_episodes=1",
-                     "+model.capacity=128"])
+                     f"scenario.horizon={steps * 0.25}", "data.train_episodes=1", "data.test_episodes=1", *gp, *extra])
 
 
 def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str = "cpu") -> list[dict]:
@@ -376,6 +380,72 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
         row.update(reference_s=t_ref, ratio=t_ref / t_fast,
                    reference_note=f"both timed on the first {ref_steps} steps only (ratio of those)")
     return [row]
+
+
+def item_filters(filter: str, nodes: int, steps: int = 50, model: str = "gp_increment", device: str = "cpu") -> list[dict]:
+    """One prediction step (``filter=<filter>``) inside the distributed filter: S nodes tracking 2 agents for
+    ``steps`` steps, hybrid consensus, the GP learned online (``model=gp_increment``; ``lin``: no learning)."""
+    from dslearn import api
+    from dslearn.compose import build_predict
+    from dslearn.filters.distributed import initial_belief, track
+
+    cfg = _network_cfg(nodes, steps, model, (f"filter={filter}",))
+    cfg.device = device
+    study = api.build_study(cfg)
+    scenario, network, mdl, obs, fusion = study.scenario, study.network, study.model, study.observation, study.fusion
+    ctx = scenario.ctx()
+    ep = scenario.sample(1, network, torch.Generator().manual_seed(2)).to(torch.float64, device)
+    init = initial_belief(ep.measurements, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
+    learn = model.startswith("gp")
+    t0 = time.perf_counter()
+    res = track(ep.measurements, network, mdl, obs, fusion, ctx, init, learn=learn, predict_step=build_predict(cfg))
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    wall = time.perf_counter() - t0
+    assert bool(torch.isfinite(res.mean).all())
+    what = "GP learned online" if learn else f"model={model}"
+    return [dict(workload="filters", item=f"filter={filter} S={nodes}, {steps} steps, {what}, hybrid", nodes=nodes,
+                 wall_s=wall, ms_per_step=1e3 * wall / steps, ms_per_node_step=1e3 * wall / (steps * nodes),
+                 peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device))]
+
+
+def item_backprop(nodes: int, episodes: int = 8, steps: int = 40, epochs: int = 3, device: str = "cpu") -> list[dict]:
+    """One training epoch of ``learner=backprop`` (forward through the filter and the L consensus rounds, backward,
+    Adam step; Q, R, weights and omega learned) on ``episodes`` episodes of ``steps`` steps, against one forward pass
+    of the same EKF on the same episodes without gradients (the reference column: its time, and epoch / forward)."""
+    from dslearn import api
+    from dslearn.filters.distributed import initial_belief, track
+    from dslearn.learning.backprop import BackpropParameters, fit
+    from dslearn.types import AGENT_DIM
+
+    cfg = _network_cfg(nodes, steps, "lin")
+    cfg.device = device
+    study = api.build_study(cfg)
+    scenario, network, mdl, obs, fusion = study.scenario, study.network, study.model, study.observation, study.fusion
+    ctx = scenario.ctx()
+    ep = scenario.sample(episodes, network, torch.Generator().manual_seed(2)).to(torch.float64, device)
+    zeros = torch.zeros(1, mdl.state_dim, dtype=torch.float64, device=device)
+    params = BackpropParameters(mdl.num_agents, mdl.matrix(ctx.dt)[:AGENT_DIM, :AGENT_DIM],
+                                mdl.noise_cov(zeros, ctx)[0, :AGENT_DIM, :AGENT_DIM],
+                                obs.noise_cov(torch.zeros(1, AGENT_DIM, dtype=torch.float64, device=device))[0],
+                                fusion, network.adjacency, learn=["q", "r", "weights", "omega"])
+
+    def init(m, f):
+        return initial_belief(m, network, ctx.dt, f, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
+
+    hist = fit(params, ep, network, ctx, init, epochs=epochs, lr=0.05)
+    t_epoch = sum(hist.seconds[1:]) / max(len(hist.seconds) - 1, 1)  # the first epoch warms up
+    with torch.no_grad():
+        t0 = time.perf_counter()
+        track(ep.measurements, network, mdl, obs, fusion, ctx, init(ep.measurements, fusion))
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        t_fwd = time.perf_counter() - t0
+    return [dict(workload="filters", item=f"learner=backprop S={nodes}, {episodes} episodes x {steps} steps: one epoch, hybrid",
+                 nodes=nodes, wall_s=t_epoch, ms_per_step=1e3 * t_epoch / steps,
+                 ms_per_node_step=1e3 * t_epoch / (steps * nodes), peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device),
+                 reference_s=t_fwd, ratio=t_epoch / t_fwd,
+                 reference_note="reference: the EKF's forward pass on the same episodes, no gradients (ratio epoch / forward)")]
 
 
 def item_study(args: list[str], label: str) -> list[dict]:
@@ -495,6 +565,11 @@ def plan(workloads, quick: bool, a) -> list:
     if "network" in workloads:
         for s in ((10, 50, 200) if quick else (10, 50, 200, 1000)):
             steps.append(("item_network", dict(nodes=s, ref_steps=(10 if s <= 50 else 0), device=a.device)))
+    if "filters" in workloads:  # the cost of each prediction step, and of a backprop epoch against the EKF
+        for s in ((10, 50) if quick else (10, 50, 200)):
+            for f in ("default", "ukf", "ukf_mm", "adf"):
+                steps.append(("item_filters", dict(filter=f, nodes=s, steps=(20 if quick else 100), device=a.device)))
+            steps.append(("item_backprop", dict(nodes=s, episodes=(4 if quick else 8), device=a.device)))
     if "dtype" in workloads:
         tr, te = (20, 20) if quick else (200, 50)
         steps.append(("parallel", [("item_protocol", dict(model="gp_increment", fusion="hybrid", train=tr, test=te, dtype=d, device=a.device,
