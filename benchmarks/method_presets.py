@@ -3,7 +3,7 @@ information filter with an EKF or UKF prediction step x five motion models x thr
 YAML file that selects the parts of a matrix cell (``dslearn-run task=matrix method=ekf_gp_hybrid``), the
 learner among them (the model's natural one: online for the GP, offline for the LSTMs, none for LIN and SFM).
 
-    python benchmarks/method_presets.py           # (re)write the 33 files
+    python benchmarks/method_presets.py           # (re)write the 31 files
     python benchmarks/method_presets.py --check   # exit 1 if a file is missing or differs from what it would write
 
 Other families' presets (``dgpt_*``, ``fg_ekf``, ``rbpf_em``) are written by hand beside these.
@@ -21,12 +21,6 @@ OUT = ROOT / "conf" / "method"
 #: preset word -> (conf/filter option, what it is)
 FILTERS = {"ekf": ("default", "EKF prediction step (linearised at the mean)"),
            "ukf": ("ukf", "UKF prediction step (sigma points through the motion model)")}
-#: the GP-Bayes filters that need a GP motion model (conf/filter option, what it is): one preset each, with the
-#: online GP under hybrid consensus (their cost on Liu's 200-sensor field keeps the other fusions out of the matrix;
-#: any fusion runs by config: method=adf_gp_hybrid consensus=centralized)
-GP_FILTERS = {"adf": ("adf", "GP-ADF prediction step (exact moments of the GP prediction at the belief)"),
-              "ukf_mm": ("ukf_mm", "GP-UKF prediction step with moment matching (latent variance averaged over "
-                         "the sigma points)")}
 #: preset word -> (conf/model option, what it is)
 MODELS = {"lin": ("lin", "constant velocity (LIN)"),
           "sfm": ("sfm", "the social force model with the simulation's parameters"),
@@ -59,10 +53,6 @@ def presets() -> dict[str, str]:
                     f"  - override /consensus: {c_opt}\n"
                     f"  - override /learner: {LEARNERS[m]}\n"
                 )
-    for f, (f_opt, f_what) in GP_FILTERS.items():
-        name = f"{f}_gp_hybrid"
-        out[f"{name}.yaml"] = out["ekf_gp_hybrid.yaml"].replace(FILTERS["ekf"][1], f_what).replace(
-            "method=ekf_gp_hybrid)", f"method={name})").replace("override /filter: default", f"override /filter: {f_opt}")
     # the LIN hybrid filter with its numbers learned by backpropagation (learner=backprop: model=lin only)
     out["ekf_lin_hybrid_backprop.yaml"] = out["ekf_lin_hybrid.yaml"].replace(
         "hybrid consensus (L = 4 rounds).", "hybrid consensus (L = 4 rounds), Q, R, consensus weights and omega "

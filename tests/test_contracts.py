@@ -368,7 +368,7 @@ def _check_scenario(option, cfg, world):
     assert _plan(cfg).scenarios == [option]
 
 
-PRESET_FILTERS = {"ekf": "default", "ukf": "ukf", "dgpt": "dgpt", "adf": "adf", "ukf_mm": "ukf_mm"}
+PRESET_FILTERS = {"ekf": "default", "ukf": "ukf", "dgpt": "dgpt"}
 PRESET_MODELS = {"lin": "lin", "sfm": "sfm", "gp": "gp_increment", "lstm": "lstm", "social_lstm": "social_lstm"}
 PRESET_FUSIONS = {"individual", "hybrid", "centralized"}
 
@@ -387,8 +387,6 @@ def _check_method(option, cfg, world):
         learner = {"fg_ekf": "fg_identification", "rbpf_em": "online_em"}[option]
         assert cfg.learner == _compose(f"learner={learner}").learner  # its own learner, set explicitly
         return
-    if option.startswith("ukf_mm_"):  # the one filter word with an underscore
-        head, rest = "ukf_mm", option[len("ukf_mm_"):]
     filt = _compose(f"filter={PRESET_FILTERS[head]}").filter
     assert cfg.filter == filt  # the filter option, every key
     if head == "dgpt":
@@ -441,7 +439,7 @@ CHECKS = {"data": _check_data, "learner": _check_learner, "method": _check_metho
 EXPECTED_OPTIONS = {"data": {"paper", "small"}, "learner": set(LEARNER_CLASSES), "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
                     "task": set(TASKS), "filter": {"default", "ukf", "ukf_mm", "adf", "dgpt", "fg_ekf", "rbpf_em"},
                     "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
-                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "ekf_lin_hybrid_backprop", "adf_gp_hybrid", "ukf_mm_gp_hybrid"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
+                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "ekf_lin_hybrid_backprop"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
                     "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
                     "network": {"yu", "yu_blind"},
                     "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1",
