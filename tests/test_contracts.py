@@ -173,6 +173,11 @@ def _check_filter(option, cfg, world):
         from dslearn.filters.adf import MomentMatchingPredict
 
         assert type(step) is MomentMatchingPredict and set(f.predict) == {"_target_"} and step.name == "adf"
+    elif option == "pf":  # the GP-PF's prediction: 500 particles, its generator seeded from the run's seed
+        from dslearn.filters.particle import ParticlePredict
+
+        assert type(step) is ParticlePredict and set(f.predict) == {"_target_", "particles", "seed"}
+        assert (step.particles, step.seed, step.name) == (500, int(cfg.seed), "pf")
     else:  # ukf_mm: the ukf's parameters, the latent variance averaged over the sigma points
         assert type(step) is UnscentedPredict and (step.alpha, step.beta, step.kappa) == (1.0, 2.0, 0.0)
         assert step.expected_variance is (option == "ukf_mm") and step.name == option
@@ -437,7 +442,7 @@ CHECKS = {"data": _check_data, "learner": _check_learner, "method": _check_metho
           "observation": _check_observation, "consensus": _check_consensus, "network": _check_network,
           "scenario": _check_scenario}
 EXPECTED_OPTIONS = {"data": {"paper", "small"}, "learner": set(LEARNER_CLASSES), "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
-                    "task": set(TASKS), "filter": {"default", "ukf", "ukf_mm", "adf", "dgpt", "fg_ekf", "rbpf_em"},
+                    "task": set(TASKS), "filter": {"default", "ukf", "ukf_mm", "adf", "pf", "dgpt", "fg_ekf", "rbpf_em"},
                     "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
                     | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "ekf_lin_hybrid_backprop"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
                     "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
@@ -577,7 +582,10 @@ def test_fusion_contract(option, yu_world):
 def test_predict_step_contract(option, yu_world):
     """Every prediction step equals the Kalman prediction for the linear (constant-velocity) model. A step for GP
     motion models only (``adf``, ``ukf_mm``) refuses it, and is checked on the GP that is that linear model: the
-    constant-velocity prior mean with no data, f(y) = F y + w, w ~ N(0, sigma_f^2 I)."""
+    constant-velocity prior mean with no data, f(y) = F y + w, w ~ N(0, sigma_f^2 I). The particle step (``pf``,
+    200000 particles) equals it within its Monte Carlo error: the mean within 4.5 standard errors of a sample mean,
+    the covariance within 5 sqrt(2/N) sd_i sd_j (the standard error of a Gaussian sample covariance is at most
+    sqrt(2/N) sd_i sd_j)."""
     from dslearn.compose import build_predict
     from dslearn.errors import ConfigError
     from dslearn.models import GPMotionModel
@@ -585,7 +593,7 @@ def test_predict_step_contract(option, yu_world):
     from dslearn.models.gp_backends import ConstantVelocityMean
 
     cfg, scenario, network = yu_world
-    step = build_predict(_compose(f"filter={option}"))
+    step = build_predict(_compose(f"filter={option}", *(["filter.predict.particles=200000"] if option == "pf" else [])))
     model = ConstantVelocity(scenario.num_agents, 0.1)
     ctx = scenario.ctx()
     dx = scenario.state_dim
@@ -601,8 +609,13 @@ def test_predict_step_contract(option, yu_world):
     y, q, om = step(mean, torch.linalg.inv(P), model, ctx)
     F = model.jacobian(mean, ctx)
     Pp = F @ P @ F.transpose(-1, -2) + model.noise_cov(mean, ctx)
-    torch.testing.assert_close(y, model(mean, ctx))
-    torch.testing.assert_close(torch.linalg.inv(om), Pp, rtol=1e-8, atol=1e-8)
+    if option == "pf":  # Monte Carlo: within its error only
+        n, sd = step.particles, Pp.diagonal(dim1=-2, dim2=-1).sqrt()
+        assert ((y - model(mean, ctx)).abs() <= 4.5 * sd / math.sqrt(n)).all()
+        assert ((torch.linalg.inv(om) - Pp).abs() <= 5 * math.sqrt(2 / n) * sd.unsqueeze(-1) * sd.unsqueeze(-2)).all()
+    else:
+        torch.testing.assert_close(y, model(mean, ctx))
+        torch.testing.assert_close(torch.linalg.inv(om), Pp, rtol=1e-8, atol=1e-8)
     torch.testing.assert_close(q, (om @ y.unsqueeze(-1)).squeeze(-1))
 
 
