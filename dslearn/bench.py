@@ -338,22 +338,42 @@ def _network_cfg(nodes: int, steps: int, model: str = "gp_increment", extra: tup
                      f"scenario.horizon={steps * 0.25}", "data.train_episodes=1", "data.test_episodes=1", *gp, *extra])
 
 
-def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str = "cpu") -> list[dict]:
+def _network_world(cfg, device: str, episodes: int = 1):
+    """The study of ``cfg`` on ``device``, its step context, ``episodes`` drawn episodes (seed 2, float64) and
+    ``init(measurements, fusion)``, the filter's initial belief."""
     from dslearn import api
-    from dslearn.filters.distributed import initial_belief, track
+    from dslearn.filters.distributed import initial_belief
 
-    cfg = _network_cfg(nodes, steps)
     cfg.device = device
     study = api.build_study(cfg)
-    scenario, network, model, obs, fusion = study.scenario, study.network, study.model, study.observation, study.fusion
+    scenario, network = study.scenario, study.network
     ctx = scenario.ctx()
-    ep = scenario.sample(1, network, torch.Generator().manual_seed(2)).to(torch.float64, device)
-    init = initial_belief(ep.measurements, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
+    ep = scenario.sample(episodes, network, torch.Generator().manual_seed(2)).to(torch.float64, device)
+
+    def init(m, f):
+        return initial_belief(m, network, ctx.dt, f, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
+
+    return study, ctx, ep, init
+
+
+def _timed(fn, device: str):
+    """``(fn(), seconds)``, CUDA work included (synchronised)."""
     t0 = time.perf_counter()
-    res = track(ep.measurements, network, model, obs, fusion, ctx, init, learn=True)
+    out = fn()
     if device.startswith("cuda"):
         torch.cuda.synchronize()
-    wall = time.perf_counter() - t0
+    return out, time.perf_counter() - t0
+
+
+def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str = "cpu") -> list[dict]:
+    from dslearn import api
+    from dslearn.filters.distributed import track
+
+    cfg = _network_cfg(nodes, steps)
+    study, ctx, ep, init_of = _network_world(cfg, device)
+    scenario, network, model, obs, fusion = study.scenario, study.network, study.model, study.observation, study.fusion
+    init = init_of(ep.measurements, fusion)
+    res, wall = _timed(lambda: track(ep.measurements, network, model, obs, fusion, ctx, init, learn=True), device)
     assert bool(torch.isfinite(res.mean).all())
     row = dict(workload="network", item=f"network S={nodes}, {steps} steps, GP learning, hybrid", nodes=nodes, wall_s=wall,
                ms_per_step=1e3 * wall / steps, ms_per_node_step=1e3 * wall / (steps * nodes),
@@ -385,23 +405,15 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
 def item_filters(filter: str, nodes: int, steps: int = 50, model: str = "gp_increment", device: str = "cpu") -> list[dict]:
     """One prediction step (``filter=<filter>``) inside the distributed filter: S nodes tracking 2 agents for
     ``steps`` steps, hybrid consensus, the GP learned online (``model=gp_increment``; ``lin``: no learning)."""
-    from dslearn import api
     from dslearn.compose import build_predict
-    from dslearn.filters.distributed import initial_belief, track
+    from dslearn.filters.distributed import track
 
     cfg = _network_cfg(nodes, steps, model, (f"filter={filter}",))
-    cfg.device = device
-    study = api.build_study(cfg)
-    scenario, network, mdl, obs, fusion = study.scenario, study.network, study.model, study.observation, study.fusion
-    ctx = scenario.ctx()
-    ep = scenario.sample(1, network, torch.Generator().manual_seed(2)).to(torch.float64, device)
-    init = initial_belief(ep.measurements, network, ctx.dt, fusion, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
-    learn = model.startswith("gp")
-    t0 = time.perf_counter()
-    res = track(ep.measurements, network, mdl, obs, fusion, ctx, init, learn=learn, predict_step=build_predict(cfg))
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-    wall = time.perf_counter() - t0
+    study, ctx, ep, init_of = _network_world(cfg, device)
+    network, mdl, obs, fusion = study.network, study.model, study.observation, study.fusion
+    init, learn, step = init_of(ep.measurements, fusion), model.startswith("gp"), build_predict(cfg)
+    res, wall = _timed(lambda: track(ep.measurements, network, mdl, obs, fusion, ctx, init, learn=learn,
+                                     predict_step=step), device)
     assert bool(torch.isfinite(res.mean).all())
     what = "GP learned online" if learn else f"model={model}"
     return [dict(workload="filters", item=f"filter={filter} S={nodes}, {steps} steps, {what}, hybrid", nodes=nodes,
@@ -413,34 +425,23 @@ def item_backprop(nodes: int, episodes: int = 8, steps: int = 40, epochs: int = 
     """One training epoch of ``learner=backprop`` (forward through the filter and the L consensus rounds, backward,
     Adam step; Q, R, weights and omega learned) on ``episodes`` episodes of ``steps`` steps, against one forward pass
     of the same EKF on the same episodes without gradients (the reference column: its time, and epoch / forward)."""
-    from dslearn import api
-    from dslearn.filters.distributed import initial_belief, track
+    from dslearn.filters.distributed import track
     from dslearn.learning.backprop import BackpropParameters, fit
     from dslearn.types import AGENT_DIM
 
     cfg = _network_cfg(nodes, steps, "lin")
-    cfg.device = device
-    study = api.build_study(cfg)
-    scenario, network, mdl, obs, fusion = study.scenario, study.network, study.model, study.observation, study.fusion
-    ctx = scenario.ctx()
-    ep = scenario.sample(episodes, network, torch.Generator().manual_seed(2)).to(torch.float64, device)
+    study, ctx, ep, init = _network_world(cfg, device, episodes)
+    network, mdl, obs, fusion = study.network, study.model, study.observation, study.fusion
     zeros = torch.zeros(1, mdl.state_dim, dtype=torch.float64, device=device)
     params = BackpropParameters(mdl.num_agents, mdl.matrix(ctx.dt)[:AGENT_DIM, :AGENT_DIM],
                                 mdl.noise_cov(zeros, ctx)[0, :AGENT_DIM, :AGENT_DIM],
                                 obs.noise_cov(torch.zeros(1, AGENT_DIM, dtype=torch.float64, device=device))[0],
                                 fusion, network.adjacency, learn=["q", "r", "weights", "omega"])
-
-    def init(m, f):
-        return initial_belief(m, network, ctx.dt, f, scenario.area, cfg.filter.prior_pos_std, cfg.filter.prior_vel_std)
-
     hist = fit(params, ep, network, ctx, init, epochs=epochs, lr=0.05)
     t_epoch = sum(hist.seconds[1:]) / max(len(hist.seconds) - 1, 1)  # the first epoch warms up
     with torch.no_grad():
-        t0 = time.perf_counter()
-        track(ep.measurements, network, mdl, obs, fusion, ctx, init(ep.measurements, fusion))
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        t_fwd = time.perf_counter() - t0
+        _, t_fwd = _timed(lambda: track(ep.measurements, network, mdl, obs, fusion, ctx, init(ep.measurements, fusion)),
+                          device)
     return [dict(workload="filters", item=f"learner=backprop S={nodes}, {episodes} episodes x {steps} steps: one epoch, hybrid",
                  nodes=nodes, wall_s=t_epoch, ms_per_step=1e3 * t_epoch / steps,
                  ms_per_node_step=1e3 * t_epoch / (steps * nodes), peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device),

@@ -63,6 +63,8 @@ import torch
 from torch import Tensor
 
 from dslearn.errors import ConfigError
+from dslearn.filters.ukf import _noise_at, _per_node
+from dslearn.filters.ukf import _propagate as _ukf_propagate
 from dslearn.models.base import MotionModel
 from dslearn.types import StepContext, safe_cholesky, spd_inverse, symmetrize
 
@@ -87,11 +89,6 @@ def check_seed(seed) -> int:
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or int(seed) < 0:
         raise ConfigError(f"{KEY}.seed={seed!r} must be an integer >= 0")
     return int(seed)
-
-
-def _per_node(model: MotionModel) -> bool:
-    """Whether the model keeps per-node state (the GPs) and so takes the node dimension first."""
-    return bool(getattr(model, "learnable", False)) or hasattr(type(model), "num_nodes")
 
 
 def _gp_model(model: MotionModel):
@@ -140,18 +137,14 @@ def _propagate(model: MotionModel, x: Tensor, w: Tensor, P: Tensor, ctx: StepCon
         d = var.unsqueeze(-1) + gpm.extra_noise(var).to(var).unsqueeze(1)  # (S, B n, Dx)
         f = mean.reshape(x.shape).to(x.dtype)
         return f, f + d.clamp_min(0.0).sqrt().reshape(x.shape).to(x.dtype) * w
-    if _per_node(model):  # node dimension first, every particle a query of its node's model
-        xf = x.reshape(s, b * n, dx)
-        c = P.unsqueeze(-3).expand(s, b, n, dx, dx).reshape(s, b * n, dx, dx)
-        c_ctx = dataclasses.replace(ctx, cov=c)
-        f = model(xf, c_ctx).reshape(x.shape)
-        R = _noise_root(model.noise_cov(xf, c_ctx).to(x.dtype)).reshape(s, b, n, dx, dx)
-    else:  # the particle dimension first: what broadcasts against the belief's batch (S, B) still does
-        xf = x.movedim(-2, 0)
-        c_ctx = dataclasses.replace(ctx, cov=P)
-        f = model(xf, c_ctx).movedim(0, -2)
-        R = _noise_root(model.noise_cov(xf, c_ctx).to(x.dtype)).movedim(0, -3)
-    f = f.to(x.dtype)
+    # any other model: f through the unscented step's propagation (the node dimension first for per-node
+    # models, the particle dimension first for the rest), its noise at every particle laid out alike
+    f = _ukf_propagate(model, x, P, ctx).to(x.dtype)
+    if _per_node(model):
+        Q = _noise_at(model, x, P, ctx)
+    else:
+        Q = model.noise_cov(x.movedim(-2, 0), dataclasses.replace(ctx, cov=P)).movedim(0, -3)
+    R = _noise_root(Q.to(x.dtype))
     return f, f + (R @ w.unsqueeze(-1)).squeeze(-1)
 
 

@@ -268,6 +268,5 @@ class UnscentedPredict:
             raise ConfigError(reason)
 
     def __call__(self, mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext, full: bool = False):
-        if not self.expected_variance:
-            return ukf_predict(mean, omega, model, ctx, full, self.alpha, self.beta, self.kappa)
-        return ukf_predict(mean, omega, model, ctx, full, self.alpha, self.beta, self.kappa, expected_variance=True)
+        return ukf_predict(mean, omega, model, ctx, full, self.alpha, self.beta, self.kappa,
+                           expected_variance=self.expected_variance)
