@@ -3,7 +3,7 @@ information filter with an EKF or UKF prediction step x five motion models x thr
 YAML file that selects the parts of a matrix cell (``dslearn-run task=matrix method=ekf_gp_hybrid``), the
 learner among them (the model's natural one: online for the GP, offline for the LSTMs, none for LIN and SFM).
 
-    python benchmarks/method_presets.py           # (re)write the 31 files
+    python benchmarks/method_presets.py           # (re)write the 37 files
     python benchmarks/method_presets.py --check   # exit 1 if a file is missing or differs from what it would write
 
 Other families' presets (``dgpt_*``, ``fg_ekf``, ``rbpf_em``) are written by hand beside these.
@@ -58,6 +58,29 @@ def presets() -> dict[str, str]:
         "hybrid consensus (L = 4 rounds).", "hybrid consensus (L = 4 rounds), Q, R, consensus weights and omega "
         "learned by backpropagation (learner=backprop).").replace(
         "method=ekf_lin_hybrid)", "method=ekf_lin_hybrid_backprop)").replace("learner: none", "learner: backprop")
+    # the GP-Bayes filters' prediction steps with the increment GP learned online (dslearn/filters/adf.py,
+    # ukf.py with the expected variance, particle.py)
+    for word, opt, what in (("adf", "adf", "GP-ADF prediction step (exact moments of the GP prediction at the belief)"),
+                            ("ukf_mm", "ukf_mm", "GP-UKF prediction step with the GP variance averaged over the "
+                                                 "sigma points"),
+                            ("pf", "pf", "GP-PF prediction step (500 particles through the GP, moment-matched)")):
+        out[f"{word}_gp_hybrid.yaml"] = out["ekf_gp_hybrid.yaml"].replace(
+            "EKF prediction step (linearised at the mean)", what).replace(
+            "method=ekf_gp_hybrid)", f"method={word}_gp_hybrid)").replace("override /filter: default",
+                                                                          f"override /filter: {opt}")
+    # the motion models' own parameters learned by backpropagation (learner=backprop, learn: [model, ...])
+    for m, learn, extra, what in (
+            ("sfm", "[model, q, r, weights, omega]", "", "its tau, alpha, beta, Q, R, consensus weights and omega"),
+            ("gp", "[model, r, weights, omega]", "", "its hyperparameters (on the data gathered online), R, "
+                                                     "consensus weights and omega"),
+            ("lstm", "[model, q, r, weights, omega]", "  model_lr: 1.0e-4\n", "its weights (after the offline fit), "
+                                                                             "Q, R, consensus weights and omega")):
+        base = out[f"ekf_{m}_hybrid.yaml"]
+        out[f"ekf_{m}_hybrid_backprop.yaml"] = base.replace(
+            "hybrid consensus (L = 4 rounds).", f"hybrid consensus (L = 4 rounds), {what} learned by "
+            "backpropagation (learner=backprop).").replace(
+            f"method=ekf_{m}_hybrid)", f"method=ekf_{m}_hybrid_backprop)").replace(
+            f"learner: {LEARNERS[m]}", "learner: backprop") + f"learner:\n  learn: {learn}\n{extra}"
     return out
 
 

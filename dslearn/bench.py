@@ -30,8 +30,9 @@ Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
   network    a network of S = 10 / 50 / 200 / 1,000 nodes tracking 2 agents for 100 steps with
              online GP learning (hybrid consensus); reference (per-node loops) on the first steps.
   filters    the cost per step of each prediction step of the distributed filter (filter=default, ukf,
-             ukf_mm, adf) with the GP learned online, S = 10 / 50 / 200 nodes (hybrid consensus), and of one
-             training epoch of learner=backprop against the EKF's forward pass on the same episodes.
+             ukf_mm, adf; pf with 100 / 500 / 2,000 particles) with the GP learned online, S = 10 / 50 / 200
+             nodes (hybrid consensus), and of one training epoch of learner=backprop against the EKF's forward
+             pass on the same episodes.
   dtype      float32 vs float64 on the same seeds (time and accuracy of the Yu study).
   studies    wall time of the other studies' default runs (``dslearn-run ...`` subprocesses).
 
@@ -402,13 +403,16 @@ def item_network(nodes: int, steps: int = 100, ref_steps: int = 0, device: str =
     return [row]
 
 
-def item_filters(filter: str, nodes: int, steps: int = 50, model: str = "gp_increment", device: str = "cpu") -> list[dict]:
+def item_filters(filter: str, nodes: int, steps: int = 50, model: str = "gp_increment", device: str = "cpu",
+                 particles: int | None = None) -> list[dict]:
     """One prediction step (``filter=<filter>``) inside the distributed filter: S nodes tracking 2 agents for
-    ``steps`` steps, hybrid consensus, the GP learned online (``model=gp_increment``; ``lin``: no learning)."""
+    ``steps`` steps, hybrid consensus, the GP learned online (``model=gp_increment``; ``lin``: no learning);
+    ``particles``: the GP-PF's particles per node and target belief (``filter=pf``)."""
     from dslearn.compose import build_predict
     from dslearn.filters.distributed import track
 
-    cfg = _network_cfg(nodes, steps, model, (f"filter={filter}",))
+    extra = (f"filter={filter}",) + ((f"filter.predict.particles={int(particles)}",) if particles is not None else ())
+    cfg = _network_cfg(nodes, steps, model, extra)
     study, ctx, ep, init_of = _network_world(cfg, device)
     network, mdl, obs, fusion = study.network, study.model, study.observation, study.fusion
     init, learn, step = init_of(ep.measurements, fusion), model.startswith("gp"), build_predict(cfg)
@@ -416,7 +420,8 @@ def item_filters(filter: str, nodes: int, steps: int = 50, model: str = "gp_incr
                                      predict_step=step), device)
     assert bool(torch.isfinite(res.mean).all())
     what = "GP learned online" if learn else f"model={model}"
-    return [dict(workload="filters", item=f"filter={filter} S={nodes}, {steps} steps, {what}, hybrid", nodes=nodes,
+    n = f" particles={int(particles)}" if particles is not None else ""
+    return [dict(workload="filters", item=f"filter={filter}{n} S={nodes}, {steps} steps, {what}, hybrid", nodes=nodes,
                  wall_s=wall, ms_per_step=1e3 * wall / steps, ms_per_node_step=1e3 * wall / (steps * nodes),
                  peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device))]
 
@@ -570,6 +575,9 @@ def plan(workloads, quick: bool, a) -> list:
         for s in ((10, 50) if quick else (10, 50, 200)):
             for f in ("default", "ukf", "ukf_mm", "adf"):
                 steps.append(("item_filters", dict(filter=f, nodes=s, steps=(20 if quick else 100), device=a.device)))
+            for n in ((100, 500) if quick else (100, 500, 2000)):  # the GP-PF: nodes x particles
+                steps.append(("item_filters", dict(filter="pf", nodes=s, steps=(20 if quick else 100), device=a.device,
+                                                   particles=n)))
             steps.append(("item_backprop", dict(nodes=s, episodes=(4 if quick else 8), device=a.device)))
     if "dtype" in workloads:
         tr, te = (20, 20) if quick else (200, 50)

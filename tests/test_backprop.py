@@ -187,9 +187,9 @@ def test_composition_refuses_unsupported_models():
     from dslearn.conf_paths import CONF_DIR
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        cfg = compose("config", overrides=["task=matrix", "method=ekf_sfm_hybrid", "learner=backprop",
-                                           "scenario=yu_two_agents"])
-        with pytest.raises(ConfigError, match=r"learner=backprop supports model=lin"):
+        cfg = compose("config", overrides=["task=matrix", "method=ekf_gp_hybrid", "model=gp_sgpr", "learner=backprop",
+                                           "learner.learn=[model]", "scenario=yu_two_agents"])
+        with pytest.raises(ConfigError, match=r"learner=backprop supports model=lin\|sfm\|gp.*variant=sgpr"):
             build_cell_parts(cfg, check_only=True)
         ok = compose("config", overrides=["task=matrix", "method=ekf_lin_hybrid_backprop", "scenario=yu_two_agents"])
         _, _, method = build_cell_parts(ok, check_only=True)

@@ -14,8 +14,10 @@ def test_plan_of_the_filters_workload_covers_every_prediction_step_and_the_backp
     a = argparse.Namespace(models="lin", fusions="hybrid", device="cpu")
     items = bench.plan(["filters"], True, a)
     filters = {kw["filter"] for name, kw in items if name == "item_filters"}
-    assert filters == {"default", "ukf", "ukf_mm", "adf"}
+    assert filters == {"default", "ukf", "ukf_mm", "adf", "pf"}
     assert {kw["nodes"] for name, kw in items if name == "item_backprop"} == {10, 50}
+    pf = {(kw["nodes"], kw["particles"]) for name, kw in items if name == "item_filters" and kw["filter"] == "pf"}
+    assert pf == {(s, n) for s in (10, 50) for n in (100, 500)}  # nodes x particles
 
 
 @pytest.mark.parametrize("filt", ["default", "adf"])
@@ -24,6 +26,11 @@ def test_item_filters_times_the_step_it_names(filt):
     assert row["workload"] == "filters" and row["item"].startswith(f"filter={filt} S=10, 4 steps")
     assert row["wall_s"] > 0 and math.isclose(row["ms_per_step"], 1e3 * row["wall_s"] / 4)
     assert math.isclose(row["ms_per_node_step"], row["ms_per_step"] / 10)
+
+
+def test_item_filters_sets_the_particle_filters_particles():
+    (row,) = bench.item_filters("pf", nodes=10, steps=3, particles=50)
+    assert row["item"].startswith("filter=pf particles=50 S=10, 3 steps") and row["wall_s"] > 0
 
 
 def test_item_backprop_compares_an_epoch_with_the_forward_pass():

@@ -373,7 +373,7 @@ def _check_scenario(option, cfg, world):
     assert _plan(cfg).scenarios == [option]
 
 
-PRESET_FILTERS = {"ekf": "default", "ukf": "ukf", "dgpt": "dgpt"}
+PRESET_FILTERS = {"ekf": "default", "ukf": "ukf", "dgpt": "dgpt", "adf": "adf", "ukf_mm": "ukf_mm", "pf": "pf"}
 PRESET_MODELS = {"lin": "lin", "sfm": "sfm", "gp": "gp_increment", "lstm": "lstm", "social_lstm": "social_lstm"}
 PRESET_FUSIONS = {"individual", "hybrid", "centralized"}
 
@@ -381,10 +381,22 @@ PRESET_FUSIONS = {"individual", "hybrid", "centralized"}
 def _check_method(option, cfg, world):
     """A preset selects the parts its name says: <filter>_<model>_<fusion> (dgpt_<aggregation rule>)."""
     head, _, rest = option.partition("_")
-    if option == "ekf_lin_hybrid_backprop":  # the LIN hybrid filter, its numbers learned by backpropagation
+    if option.startswith("ukf_mm_"):  # the GP-UKF with moment matching: a filter word with an underscore
+        head, rest = "ukf_mm", option.removeprefix("ukf_mm_")
+    if option.endswith("_backprop"):  # a preset's parts, its numbers learned by backpropagation
+        base = option.removesuffix("_backprop")
         assert {k: cfg[k] for k in ("filter", "model", "observation", "consensus")} == \
-            {k: _compose("method=ekf_lin_hybrid")[k] for k in ("filter", "model", "observation", "consensus")}
-        assert cfg.learner == _compose("learner=backprop").learner
+            {k: _compose(f"method={base}")[k] for k in ("filter", "model", "observation", "consensus")}
+        plain = _compose("learner=backprop").learner
+        if option == "ekf_lin_hybrid_backprop":
+            assert cfg.learner == plain
+            return
+        # the motion model's own parameters with R, the weights and omega (and Q where the model has one)
+        assert {k: v for k, v in cfg.learner.items() if k not in ("learn", "model_lr")} == \
+            {k: v for k, v in plain.items() if k not in ("learn", "model_lr")}
+        q = [] if "_gp_" in option else ["q"]
+        assert list(cfg.learner.learn) == ["model", *q, "r", "weights", "omega"]
+        assert cfg.learner.model_lr == (1e-4 if "_lstm_" in option else None)
         return
     if option in ("fg_ekf", "rbpf_em"):  # Jiang's / Braga's method: its filter option (and the statistics part)
         assert cfg.filter == _compose(f"filter={option}").filter
@@ -430,9 +442,9 @@ def _check_learner(option, cfg, world):
         task = _compose("experiment=liu_table1").task
         assert cfg.learner.hyper == task.hyper
     elif option == "backprop":  # its settings (conf/learner/backprop.yaml) as the learner holds them
-        assert set(cfg.learner) == {"_target_", "epochs", "lr", "batch", "loss", "learn", "train_fusion"}
-        assert (obj.epochs, obj.lr, obj.batch, obj.loss, obj.learn, obj.train_fusion) == (
-            30, 0.05, None, "innovation", ["q", "r", "weights", "omega"], "consensus")
+        assert set(cfg.learner) == {"_target_", "epochs", "lr", "batch", "loss", "learn", "train_fusion", "model_lr"}
+        assert (obj.epochs, obj.lr, obj.batch, obj.loss, obj.learn, obj.train_fusion, obj.model_lr) == (
+            30, 0.05, None, "innovation", ["q", "r", "weights", "omega"], "consensus", None)
     else:  # no settings of its own
         assert set(cfg.learner) == {"_target_"}
 
@@ -444,7 +456,9 @@ CHECKS = {"data": _check_data, "learner": _check_learner, "method": _check_metho
 EXPECTED_OPTIONS = {"data": {"paper", "small"}, "learner": set(LEARNER_CLASSES), "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
                     "task": set(TASKS), "filter": {"default", "ukf", "ukf_mm", "adf", "pf", "dgpt", "fg_ekf", "rbpf_em"},
                     "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
-                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "ekf_lin_hybrid_backprop"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
+                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "ekf_lin_hybrid_backprop", "adf_gp_hybrid",
+                       "ukf_mm_gp_hybrid", "pf_gp_hybrid", "ekf_sfm_hybrid_backprop", "ekf_gp_hybrid_backprop",
+                       "ekf_lstm_hybrid_backprop"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
                     "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
                     "network": {"yu", "yu_blind"},
                     "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1",

@@ -16,6 +16,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import get_object
 
+from dslearn import api
 from dslearn.compose import build
 from dslearn.episodes import Episodes, Estimates, ScenarioSpec
 from dslearn.errors import ConfigError
@@ -342,3 +343,39 @@ def test_a_cell_whose_model_learns_online(make_cfg):
         out[n] = df[df["metric"] == "rmse"].sort_values("node")["value"].to_numpy()
     assert len(out[0]) == len(out[1]) > 0 and all(math.isfinite(v) for v in out[1])
     assert abs(out[1] - out[0]).max() > 1e-6
+
+
+def test_left_out_cells_are_dropped_with_their_reason_and_a_bad_entry_is_refused():
+    """task.left_out: a fitting cell the sweep leaves out is recorded with the entry's reason, no job; the other
+    cells are untouched; an entry naming no preset, no scenario or no reason is refused before any job."""
+    from dslearn.schemas.matrix import select_cells
+
+    def compose_with(entries):
+        return lambda lines: api.compose("task=matrix", *lines, f"task.left_out={entries}")
+
+    combos = [["method=ekf_lin_hybrid", "scenario=yu_two_agents"], ["method=ekf_lin_hybrid", "scenario=corridor"]]
+    entry = "[{method: ekf_lin_hybrid, scenarios: [corridor], why: 'too slow here'}]"
+    kept, records = select_cells(combos, compose_with(entry))
+    assert kept == [combos[0]]
+    assert records[0]["reason"] is None and records[0]["job"] == 0
+    assert records[1]["job"] is None
+    assert records[1]["reason"] == ("ekf lin hybrid on scenario corridor is left out of this sweep (task.left_out): "
+                                    "too slow here")
+    kept, _ = select_cells(combos, compose_with("[]"))
+    assert kept == combos
+    for bad, message in (("[{method: ekf_lin_hybird, scenarios: [corridor], why: x}]", r"left_out\[0\].method"),
+                         ("[{method: ekf_lin_hybrid, scenarios: [corridr], why: x}]", r"left_out\[0\].scenarios"),
+                         ("[{method: ekf_lin_hybrid, scenarios: [corridor], why: ''}]", r"left_out\[0\].why")):
+        with pytest.raises(ConfigError, match=message):
+            select_cells(combos, compose_with(bad))
+
+
+def test_experiment_matrix_left_out_entries_name_its_own_presets_and_scenarios():
+    from dslearn.conf_paths import CONF_DIR
+
+    exp = yaml.safe_load((CONF_DIR / "experiment" / "matrix.yaml").read_text())
+    params = exp["hydra"]["sweeper"]["params"]
+    methods = {m.strip() for m in params["method"].split(",")}
+    scenarios = {x.strip() for x in params["scenario"].split(",")}
+    entries = exp["task"]["left_out"]
+    assert entries and all(e["method"] in methods and set(e["scenarios"]) <= scenarios and e["why"] for e in entries)

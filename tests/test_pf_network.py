@@ -207,3 +207,28 @@ def test_end_to_end_on_the_linear_model_tracks_like_the_ekf():
     assert 0.0 < r_ekf < 1.0 and math.isfinite(r_pf)
     assert abs(r_pf - r_ekf) <= 0.03 * r_ekf, (r_pf, r_ekf)
     assert abs(n_pf - n_ekf) <= 0.05 * n_ekf, (n_pf, n_ekf)
+
+
+def test_the_memory_guard_counts_the_particle_clouds():
+    """filter=pf adds 5 clouds (S, B_test, N, 4m) of float64 and its chunked model evaluation to the estimated
+    peak; linear in the particles; other filters add nothing; a run whose clouds exceed the limit is refused
+    before it starts, naming the part."""
+    from dslearn.filters.particle import CHUNK_ELEMENTS
+    from dslearn.schemas.core import estimate_core_memory
+
+    assert "particles" not in estimate_core_memory(api.compose())
+    est = estimate_core_memory(api.compose("filter=pf", "filter.predict.particles=1000", "data.test_episodes=3"))
+    s, d = 10, 8  # the Yu scenario: 10 nodes, 2 agents
+    cloud = s * 3 * 1000 * d
+    assert est["particles"] == 5 * cloud * 8 + 4 * min(CHUNK_ELEMENTS, cloud * est_n(api)) * 8
+    many = ("filter=pf", "filter.predict.particles=1000000", "data.test_episodes=50")
+    big = estimate_core_memory(api.compose(*many, "+max_memory_gb=1000"))["particles"]
+    assert big == 5 * (s * 50 * 1_000_000 * d) * 8 + 4 * CHUNK_ELEMENTS * 8  # 160 GB of clouds
+    with pytest.raises(ConfigError, match="largest part: particles"):
+        api.compose(*many, "+max_memory_gb=20")
+
+
+def est_n(api):
+    """Training data points of the default Yu run (train episodes x steps)."""
+    cfg = api.compose()
+    return int(cfg.data.train_episodes) * int(round(float(cfg.scenario.horizon) / float(cfg.scenario.dt)))

@@ -91,7 +91,9 @@ class GPModel:
 class StepResult:
     """One predict + update step: posterior, predicted state and predicted measurement (all Gaussian);
     ``ess``: the particle filter's effective sample size after the update (``None`` for Gaussian filters);
-    ``particles``: its resampled particles ``(*B, N, D)``."""
+    ``particles``: its resampled particles ``(*B, N, D)``; ``cross``: the cross-covariance
+    ``Cov[x, z]`` ``(*B, D, E)`` of the predicted state and measurement (for the statistical
+    linear regression of :func:`slr_information`)."""
 
     mean: Tensor
     cov: Tensor
@@ -101,6 +103,7 @@ class StepResult:
     z_cov: Tensor
     ess: Optional[Tensor] = None
     particles: Optional[Tensor] = None
+    cross: Optional[Tensor] = None
 
 
 def _sym(P: Tensor) -> Tensor:
@@ -115,6 +118,40 @@ def gaussian_update(m_p: Tensor, P_p: Tensor, z_mean: Tensor, z_cov: Tensor, cro
     return mean, cov
 
 
+#: :func:`slr_information` floors the eigenvalues of the effective noise at this fraction of the mean variance of
+#: the predicted measurement
+SLR_FLOOR = 1e-12
+
+
+def slr_information(m_p: Tensor, P_p: Tensor, z_mean: Tensor, z_cov: Tensor, cross: Tensor, z: Tensor,
+                    floor: float = SLR_FLOOR) -> tuple[Tensor, Tensor, Tensor]:
+    r"""A filter's measurement moments as novel information, by statistical linear regression.
+
+    From the predicted state :math:`\mathcal N(m_p, P_p)` ``(*B, D)``, ``(*B, D, D)`` and the moments of the
+    predicted measurement (``z_mean`` ``(*B, E)``, ``z_cov`` ``(*B, E, E)``, ``cross`` :math:`C = \mathrm{Cov}[x, z]`
+    ``(*B, D, E)``): :math:`H = C^T P_p^{-1}`, :math:`R = S_z - H P_p H^T` (the part of the measurement's
+    variance the linear fit does not explain), then for a measurement ``z`` ``(*A, *B, E)`` (leading dims
+    ``*A``, e.g. the nodes): :math:`\delta\Omega = H^T R^{-1} H` ``(*B, D, D)`` and
+    :math:`\delta q = H^T R^{-1} (z - \mu_z + H m_p)` ``(*A, *B, D)``. Added to the information of
+    :math:`\mathcal N(m_p, P_p)` this gives exactly the Gaussian update of :func:`gaussian_update` (the
+    matrix inversion lemma). :math:`R` is positive semidefinite for any valid joint covariance; where an
+    eigenvalue is below ``floor`` times the mean diagonal of ``z_cov`` (rounding, or a joint covariance that is
+    not positive definite) it is raised to that value, and ``clamped`` ``(*B,)`` marks those entries."""
+    H = torch.linalg.solve(P_p, cross).transpose(-1, -2)              # (P^{-1} C)^T = C^T P^{-1} (P symmetric)
+    R = _sym(z_cov - H @ P_p @ H.transpose(-1, -2))
+    lo = floor * torch.diagonal(z_cov, dim1=-2, dim2=-1).mean(-1)     # (*B,)
+    evals, V = torch.linalg.eigh(R)
+    clamped = (evals < lo.unsqueeze(-1)).any(-1)
+    if bool(clamped.any()):
+        fixed = V @ torch.diag_embed(torch.maximum(evals, lo.unsqueeze(-1))) @ V.transpose(-1, -2)
+        R = torch.where(clamped.unsqueeze(-1).unsqueeze(-1), _sym(fixed), R)
+    RinvH = torch.linalg.solve(R, H)                                  # (*B, E, D)
+    domega = _sym(H.transpose(-1, -2) @ RinvH)
+    zbar = z - z_mean + (H @ m_p.unsqueeze(-1)).squeeze(-1)          # (*A, *B, E)
+    dq = (RinvH.transpose(-1, -2) @ zbar.unsqueeze(-1)).squeeze(-1)  # R symmetric: H^T R^{-1} = (R^{-1} H)^T
+    return dq, domega, clamped
+
+
 def ekf_step(f, g, m: Tensor, P: Tensor, z: Tensor) -> StepResult:
     """EKF (true model) / GP-EKF (GP models): linearised means, the noise at the linearisation point."""
     F = jacobian(f.mean, m)
@@ -125,7 +162,7 @@ def ekf_step(f, g, m: Tensor, P: Tensor, z: Tensor) -> StepResult:
     z_cov = _sym(H @ P_p @ H.transpose(-1, -2) + g.noise(m_p))
     cross = P_p @ H.transpose(-1, -2)
     mean, cov = gaussian_update(m_p, P_p, z_mean, z_cov, cross, z)
-    return StepResult(mean, cov, m_p, P_p, z_mean, z_cov)
+    return StepResult(mean, cov, m_p, P_p, z_mean, z_cov, cross=cross)
 
 
 def sigma_points(m: Tensor, P: Tensor, alpha: float, beta: float, kappa: float):
@@ -171,7 +208,7 @@ def ukf_step(f, g, m: Tensor, P: Tensor, z: Tensor, alpha: float = 1.0, beta: fl
     m_p, P_p, _ = unscented_transform(f, m, P, alpha, beta, kappa, noise)
     z_mean, z_cov, cross = unscented_transform(g, m_p, P_p, alpha, beta, kappa, noise)
     mean, cov = gaussian_update(m_p, P_p, z_mean, z_cov, cross, z)
-    return StepResult(mean, cov, m_p, P_p, z_mean, z_cov)
+    return StepResult(mean, cov, m_p, P_p, z_mean, z_cov, cross=cross)
 
 
 def adf_step(f: GPModel, g: GPModel, m: Tensor, P: Tensor, z: Tensor) -> StepResult:
@@ -179,7 +216,7 @@ def adf_step(f: GPModel, g: GPModel, m: Tensor, P: Tensor, z: Tensor) -> StepRes
     m_p, P_p, _ = f.moments(m, P)
     z_mean, z_cov, cross = g.moments(m_p, P_p)
     mean, cov = gaussian_update(m_p, P_p, z_mean, z_cov, cross, z)
-    return StepResult(mean, cov, m_p, P_p, z_mean, z_cov)
+    return StepResult(mean, cov, m_p, P_p, z_mean, z_cov, cross=cross)
 
 
 def _randn(shape, generator: torch.Generator, like: Tensor) -> Tensor:
@@ -210,7 +247,8 @@ def pf_step(f, g, m: Tensor, P: Tensor, z: Tensor, num_particles: int, generator
     """Particle filter (true model) / GP-PF (GP models): particles from the prior, propagated by sampling
     ``N(f.mean(x), f.noise(x))``, weighted by ``N(z; g.mean(x'), g.noise(x'))``, resampled systematically.
     The Gaussian summaries are the particles' weighted moments (before resampling); the predicted
-    measurement is the moment match of ``N(g.mean(x'), g.noise(x'))`` over the predicted particles."""
+    measurement is the moment match of ``N(g.mean(x'), g.noise(x'))`` over the predicted particles, ``cross``
+    the particles' covariance of ``x'`` and ``g.mean(x')`` (the measurement noise is independent of ``x'``)."""
     N = int(num_particles)
     D = m.shape[-1]
     shape = (*m.shape[:-1], N, D)
@@ -222,6 +260,8 @@ def pf_step(f, g, m: Tensor, P: Tensor, z: Tensor, num_particles: int, generator
     gz, R = g.mean_noise(x1)                                           # (*B, N, E), (*B, N, E, E)
     z_mean, z_spread = _weighted_moments(gz, w0)
     z_cov = _sym(z_spread + R.mean(-3))
+    dx, dz = x1 - pred_mean.unsqueeze(-2), gz - z_mean.unsqueeze(-2)
+    cross = (w0.unsqueeze(-1).unsqueeze(-1) * dx.unsqueeze(-1) * dz.unsqueeze(-2)).sum(-3)  # noise: independent of x
     LR = torch.linalg.cholesky(R)
     r = torch.linalg.solve_triangular(LR, (z.unsqueeze(-2) - gz).unsqueeze(-1), upper=False).squeeze(-1)
     loglik = -0.5 * (r * r).sum(-1) - torch.log(torch.diagonal(LR, dim1=-2, dim2=-1)).sum(-1)
@@ -231,4 +271,4 @@ def pf_step(f, g, m: Tensor, P: Tensor, z: Tensor, num_particles: int, generator
     ess = 1.0 / (w * w).sum(-1)
     idx = systematic_resample(logw, generator)
     particles = torch.gather(x1, -2, idx.unsqueeze(-1).expand(*idx.shape, D))
-    return StepResult(mean, cov, pred_mean, pred_cov, z_mean, z_cov, ess=ess, particles=particles)
+    return StepResult(mean, cov, pred_mean, pred_cov, z_mean, z_cov, ess=ess, particles=particles, cross=cross)

@@ -10,9 +10,25 @@ autograd follows the information filter and the consensus rounds; no step is wri
 - ``weights``: the consensus weights, a masked softmax over each node's neighbours and itself (row-stochastic on
   the graph's edges by construction, zero off it), initialised at the configured rule's weights;
 - ``omega``: the novel-information weight :math:`\omega = \exp(\cdot)` (fusions that use it: hybrid, cm);
-- ``model``: the motion model's parameters. Supported models now: ``model=lin`` (constant velocity), whose
-  parameter is its transition matrix ``F`` (one agent block, shared by the agents, initialised at the constant
-  velocity matrix). Other motion models are refused at composition.
+- ``model``: the motion model's own parameters (:func:`motion_parameters`, one :class:`MotionParameters` per
+  kind of model):
+
+  * ``model=lin`` (constant velocity): its transition matrix ``F`` (one agent block, shared by the agents,
+    initialised at the constant velocity matrix);
+  * ``model=sfm`` (the social force): each agent's :math:`\tau` and :math:`\beta` (log) and :math:`\alpha`,
+    initialised at the configured values (the desired velocities stay as given);
+  * the exact GPs (``gp``, ``gp_increment``, ``gp_adaptive``, ``gp_cv``, ``gp_window``; ``inputs=mean``):
+    each node's length scale, signal and noise variance (log). The data sets are first gathered online on
+    the training episodes (Algorithm 1, as ``learner=online``), then held fixed while the hyperparameters
+    learn through the filter; the posterior is refactorised from the data at every pass
+    (:class:`DifferentiableGP`), so autograd follows the kernel matrix, its Cholesky factor, the mean, the
+    latent variance (the filter's ``Q``) and the closed-form Jacobian;
+  * ``model=lstm`` / ``social_lstm``: every weight of the encoder-decoder, after its offline fit (the
+    model's own learner, ``fit_offline``): fine-tuned through the filter, its Jacobian differentiated once more
+    (``create_graph``).
+
+  Other motion models are refused at composition, with the reason. For a GP, ``q`` is refused: its process
+  noise is its own predictive variance, learned through its hyperparameters.
 
 Losses: ``innovation`` (measurements only, Yu et al.'s setting): the negative log-likelihood of every node's
 innovations :math:`\nu = z - H\hat y^{t|t-1}`, :math:`\nu \sim \mathcal N(0, H P^{t|t-1} H^T + R)`, summed over the
@@ -23,6 +39,7 @@ nodes' position estimates to the true positions (training episodes with truth).
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -37,7 +54,7 @@ from dslearn.filters.distributed import TrackResult, track
 from dslearn.filters.information import predict as ekf_predict
 from dslearn.fusion.strategies import Fusion, make_fusion
 from dslearn.models.base import MotionModel, ObservationModel
-from dslearn.types import AGENT_DIM, StepContext, agents
+from dslearn.types import AGENT_DIM, POS, StepContext, agents, safe_cholesky
 
 #: what ``learner.learn`` may list
 LEARNABLE = ("q", "r", "weights", "omega", "model")
@@ -46,10 +63,15 @@ OPTIMIZERS = ("adam", "lbfgs")
 #: where ``learner=backprop`` trains: through the configured consensus, or each node alone (then frozen)
 TRAIN_FUSIONS = ("consensus", "individual")
 #: the motion models (``conf/model`` options) whose parameters this learner can learn
-SUPPORTED_MODELS = ("lin",)
+SUPPORTED_MODELS = ("lin", "sfm", "gp", "gp_increment", "gp_adaptive", "gp_cv", "gp_window", "lstm", "social_lstm")
+#: the prediction steps it can differentiate with a GP motion model (the GP-ADF and GP-UKF-MM read the
+#: GP's own factor, not the differentiable posterior)
+GP_STEPS = ("ekf", "ukf", "pf")
 #: fusions with consensus weights (``weights``) and with a novel-information weight (``omega``)
 WEIGHTED_FUSIONS = ("ce", "cm", "ci", "hybrid")
 OMEGA_FUSIONS = ("cm", "hybrid")
+
+_LOG = logging.getLogger(__name__)
 
 
 # ------------------------------------------------------------------------------------------ parametrisations
@@ -128,26 +150,352 @@ class LinearSensor(ObservationModel):
         return self.r.to(y).expand(*y.shape[:-1], 2, 2)
 
 
+class NoiseOverride(MotionModel):
+    """``base``'s mean and Jacobian with the process noise ``Q = blockdiag(Q_a, ...)`` of a tensor ``Q_a``
+    (4 x 4; ``learn: [q]`` for a model whose own noise is replaced)."""
+
+    def __init__(self, base: MotionModel, q_block: Tensor):
+        super().__init__()
+        self.base, self.q_block = base, q_block
+        self.state_dim, self.num_agents = base.state_dim, base.state_dim // AGENT_DIM
+
+    def forward(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.base(x, ctx)
+
+    def jacobian(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.base.jacobian(x, ctx)
+
+    def noise_cov(self, x: Tensor, ctx: StepContext) -> Tensor:
+        eye = torch.eye(self.num_agents, dtype=x.dtype, device=x.device)
+        q = torch.kron(eye, self.q_block.to(x))
+        return q.expand(*x.shape[:-1], *q.shape)
+
+    def linearize(self, x: Tensor, ctx: StepContext) -> tuple[Tensor, Tensor, Tensor]:
+        mean, jac, _ = self.base.linearize(x, ctx)
+        return mean, jac, self.noise_cov(x, ctx)
+
+
+class DifferentiableGP(MotionModel):
+    r"""The posterior of a :class:`~dslearn.models.gp.GPMotionModel`'s exact GPs on fixed data sets, with the
+    hyperparameters as tensors: :math:`K + \sigma_\epsilon^2 I` is factorised once per pass (the module is built
+    per pass), so autograd follows the factor into the mean :math:`m(x) + k_*^T\alpha`, the latent variance
+    :math:`\sigma_f^2 - \|L^{-1}k_*\|^2`, the closed-form Jacobian and the process noise of the model's noise
+    mode (``latent``, ``predictive``: :math:`+\sigma_\epsilon^2`, ``adaptive``: + the model's fixed EM noise).
+    Equals the model's own :meth:`~dslearn.models.gp_backends.exact.OnlineGP.predict` at the same numbers
+    (tested). Inputs ``(S, *B, Dx)``, the node dimension first."""
+
+    def __init__(self, base, X: Tensor, R: Tensor, mask: Tensor, lengthscale: Tensor, outputscale: Tensor,
+                 noise: Tensor):
+        super().__init__()
+        self.base, self.state_dim = base, base.state_dim
+        self.X, self.mask = X, mask
+        self.ls, self.os, self.noise = lengthscale, outputscale, noise  # (S,) each
+        m = mask.to(X.dtype)
+        self.m = m
+        n = X.shape[1]
+        K = self._kernel(X, X) * (m.unsqueeze(-1) * m.unsqueeze(-2))
+        eye = torch.eye(n, dtype=X.dtype, device=X.device)
+        K = K + eye * (noise.reshape(-1, 1, 1) * m.unsqueeze(-1) + (1 - m).unsqueeze(-1))
+        self.L = safe_cholesky(K)
+        self.alpha = torch.cholesky_solve(R * m.unsqueeze(-1), self.L)  # (S, n, Dy)
+
+    def _kernel(self, a: Tensor, b: Tensor) -> Tensor:
+        """``(S, Na, d), (S, Nb, d) -> (S, Na, Nb)``: :math:`\\sigma_f^2 \\exp(-\\|a-b\\|^2 / 2l^2)`, by inner
+        products (differentiable where ``a = b``, unlike the distance)."""
+        ls = self.ls.reshape(-1, 1, 1)
+        a, b = a / ls, b / ls
+        d2 = (a * a).sum(-1).unsqueeze(-1) + (b * b).sum(-1).unsqueeze(-2) - 2 * a @ b.transpose(-1, -2)
+        return self.os.reshape(-1, 1, 1) * torch.exp(-0.5 * d2.clamp_min(0.0))
+
+    def predict(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Mean ``(S, N, Dx)``, latent variance ``(S, N)``, Jacobian ``(S, N, Dx, Dx)`` at ``x (S, N, Dx)``."""
+        gp = self.base.gp
+        ks = self._kernel(self.X, x) * self.m.unsqueeze(-1)  # (S, n, N)
+        ka = ks.transpose(-1, -2) @ self.alpha  # (S, N, Dy)
+        mean = gp.prior_mean(x) + ka
+        w = torch.linalg.solve_triangular(self.L, ks, upper=False)
+        var = (self.os.unsqueeze(-1) - (w * w).sum(-2)).clamp_min(0.0)
+        kax = torch.einsum("san,sao,sad->snod", ks, self.alpha, self.X)
+        ls2 = (self.ls**2).reshape(-1, 1, 1, 1)
+        jac = gp.prior_mean_jacobian(x) - (ka.unsqueeze(-1) * x.unsqueeze(-2) - kax) / ls2
+        return mean, var, jac
+
+    @property
+    def num_nodes(self) -> int:
+        """``S``: a per-node model (the UKF and PF steps put the node dimension first)."""
+        return self.base.num_nodes
+
+    def _flat(self, x: Tensor) -> Tensor:
+        return self.base._flat(x)
+
+    def linearize(self, x: Tensor, ctx: StepContext) -> tuple[Tensor, Tensor, Tensor]:
+        mean, var, jac = self.predict(self._flat(x))
+        if self.base.noise_mode == "predictive":
+            var = var + self.noise.unsqueeze(-1)
+        eye = torch.eye(self.state_dim, dtype=x.dtype, device=x.device)
+        q = var.reshape(*x.shape[:-1], 1, 1) * eye
+        if self.base.noise_mode == "adaptive":
+            extra = self.base.extra_noise(x).reshape(x.shape[0], *([1] * (x.dim() - 2)), self.state_dim)
+            q = q + torch.diag_embed(extra.expand(*x.shape))
+        return mean.reshape(x.shape), jac.reshape(*x.shape, self.state_dim), q
+
+    def forward(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.linearize(x, ctx)[0]
+
+    def jacobian(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.linearize(x, ctx)[1]
+
+    def noise_cov(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.linearize(x, ctx)[2]
+
+
+def _graph_input(x: Tensor) -> Tensor:
+    """``x`` itself where it is part of a graph (the belief's mean: its path stays), else a leaf that needs grad."""
+    return x if x.requires_grad else x.detach().requires_grad_(True)
+
+
+class DifferentiableJacobian(MotionModel):
+    """``base`` with its autograd Jacobian kept in the graph (``create_graph``): the EKF's ``F`` is then
+    differentiable in the model's parameters and in the belief it is taken at, not only its mean. Every row
+    of ``F`` by reverse mode, or (``position_rows``, the LSTM) the ``2A`` position rows, the velocity rows
+    being their finite difference as the model defines them."""
+
+    def __init__(self, base: MotionModel, position_rows: bool = False):
+        super().__init__()
+        self.base, self.state_dim, self.position_rows = base, base.state_dim, bool(position_rows)
+
+    def forward(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.base(x, ctx)
+
+    def noise_cov(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.base.noise_cov(x, ctx)
+
+    def linearize(self, x: Tensor, ctx: StepContext) -> tuple[Tensor, Tensor, Tensor]:
+        with torch.enable_grad():
+            z = _graph_input(x)
+            y = self.base(z, ctx)
+            out = agents(y)[..., POS].reshape(*y.shape[:-1], -1) if self.position_rows else y
+            rows = [torch.autograd.grad(out[..., i].sum(), z, create_graph=True)[0] for i in range(out.shape[-1])]
+        F = torch.stack(rows, -2)
+        if self.position_rows:
+            a = self.state_dim // AGENT_DIM
+            jp = F.unflatten(-2, (a, 2))
+            sel = torch.eye(self.state_dim, dtype=x.dtype, device=x.device).view(a, AGENT_DIM, -1)[:, POS]
+            F = torch.cat([jp, (jp - sel) / self.base.dt], dim=-2).flatten(-3, -2)
+        return y, F, self.noise_cov(x, ctx)
+
+    def jacobian(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.linearize(x, ctx)[1]
+
+
+class MotionParameters(nn.Module):
+    """The learnable numbers of one kind of motion model (``learner.learn: [model]``) and the differentiable
+    model they give for a pass (:meth:`build`) or, detached, for tracking (:meth:`frozen`).
+    ``q_block``: the learned agent block of ``Q`` replacing the model's own noise, or ``None``."""
+
+    kind: ClassVar[str]
+    #: whether ``learn: [q]`` applies (False: the model's noise is its own, e.g. a GP's predictive variance)
+    takes_q: ClassVar[bool] = True
+
+    def build(self, q_block: Tensor | None) -> MotionModel:
+        raise NotImplementedError
+
+    def frozen(self, q_block: Tensor | None) -> MotionModel:
+        raise NotImplementedError
+
+    def summary(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+
+class LinearParameters(MotionParameters):
+    """``model=lin``: the agent block ``F_a`` of the transition matrix (its ``Q`` is always ``q``'s)."""
+
+    kind = "lin"
+
+    def __init__(self, num_agents: int, f_block: Tensor):
+        super().__init__()
+        self.num_agents = int(num_agents)
+        self.f_block = nn.Parameter(f_block.detach().to(torch.float64).clone())
+
+    def build(self, q_block: Tensor | None) -> LinearMotion:
+        return LinearMotion(self.num_agents, self.f_block, q_block)
+
+    def frozen(self, q_block: Tensor | None) -> LinearMotion:
+        return LinearMotion(self.num_agents, self.f_block.detach().clone(), q_block.detach())
+
+    def summary(self) -> dict[str, Any]:
+        return {"f_block": self.f_block.detach().tolist()}
+
+
+class SocialForceParameters(MotionParameters):
+    r"""``model=sfm``: each agent's :math:`\log\tau`, :math:`\alpha`, :math:`\log\beta`
+    (:meth:`~dslearn.models.social_force.SocialForce.set_parameters` keeps their graph)."""
+
+    kind = "sfm"
+
+    def __init__(self, model):
+        super().__init__()
+        self._template = (copy.deepcopy(model),)  # not a submodule: the numbers below are the parameters
+        self.tau_log = nn.Parameter(model.tau.detach().to(torch.float64).log().clone())
+        self.alpha = nn.Parameter(model.alpha.detach().to(torch.float64).clone())
+        self.beta_log = nn.Parameter(model.beta.detach().to(torch.float64).log().clone())
+
+    def numbers(self) -> tuple[Tensor, Tensor, Tensor]:
+        return self.tau_log.exp(), self.alpha, self.beta_log.exp()
+
+    def build(self, q_block: Tensor | None) -> MotionModel:
+        m = DifferentiableJacobian(copy.deepcopy(self._template[0]).set_parameters(*self.numbers()))
+        return m if q_block is None else NoiseOverride(m, q_block)
+
+    def frozen(self, q_block: Tensor | None) -> MotionModel:
+        with torch.no_grad():
+            m = copy.deepcopy(self._template[0]).set_parameters(*(t.detach().clone() for t in self.numbers()))
+        return m if q_block is None else NoiseOverride(m, q_block.detach())
+
+    def summary(self) -> dict[str, Any]:
+        tau, alpha, beta = (t.detach().tolist() for t in self.numbers())
+        return {"sfm": {"tau": tau, "alpha": alpha, "beta": beta}}
+
+
+class GPParameters(MotionParameters):
+    """An exact GP motion model's hyperparameters per node (log length scale, signal and noise variance) on
+    the data sets it holds now (gathered online before; fixed while they learn). :meth:`frozen` writes them
+    into the model and refactorises its online GP once; a noise variance below GPyTorch's constraint is
+    raised to it (logged)."""
+
+    kind = "gp"
+    takes_q = False
+
+    def __init__(self, model):
+        super().__init__()
+        self._model = (model,)
+        gp = model.gp
+        X, R, mask = gp.data()
+        self.register_buffer("X", X.detach().to(torch.float64).clone())
+        self.register_buffer("R", R.detach().to(torch.float64).clone())
+        self.register_buffer("data_mask", mask.detach().clone())
+        self.ls_log = nn.Parameter(gp.lengthscale.to(torch.float64).log().clone())
+        self.os_log = nn.Parameter(gp.outputscale.to(torch.float64).log().clone())
+        self.noise_log = nn.Parameter(gp.noise_var.to(torch.float64).log().clone())
+
+    def numbers(self) -> tuple[Tensor, Tensor, Tensor]:
+        return self.ls_log.exp(), self.os_log.exp(), self.noise_log.exp()
+
+    def build(self, q_block: Tensor | None) -> DifferentiableGP:
+        return DifferentiableGP(self._model[0], self.X, self.R, self.data_mask, *self.numbers())
+
+    def frozen(self, q_block: Tensor | None):
+        model = self._model[0]
+        gp = model.gp
+        ls, os_, noise = (t.detach() for t in self.numbers())
+        floor = float(gp.likelihood.noise_covar.raw_noise_constraint.lower_bound)
+        if bool((noise < floor).any()):
+            _LOG.warning("learner=backprop: GP noise variance %s raised to GPyTorch's lower bound %g",
+                         noise.tolist(), floor)
+            noise = noise.clamp_min(floor * (1 + 1e-9))
+        kw = dict(dtype=gp.dtype_, device=gp.device_)
+        gp.covar_module.base_kernel.lengthscale = ls.reshape(-1, 1, 1).to(**kw)
+        gp.covar_module.outputscale = os_.to(**kw)
+        gp.likelihood.noise = noise.reshape(-1, 1).to(**kw)
+        gp.refactorize()
+        return model
+
+    def summary(self) -> dict[str, Any]:
+        ls, os_, noise = (t.detach().tolist() for t in self.numbers())
+        return {"gp": {"lengthscale": ls, "outputscale": os_, "noise_var": noise}}
+
+
+class LSTMParameters(MotionParameters):
+    """``model=lstm`` / ``social_lstm``: every weight of a copy of the (offline-fitted) encoder-decoder."""
+
+    kind = "lstm"
+
+    def __init__(self, model):
+        super().__init__()
+        self.lstm = copy.deepcopy(model).to(torch.float64)
+
+    def build(self, q_block: Tensor | None) -> MotionModel:
+        m = DifferentiableJacobian(self.lstm, position_rows=True)
+        return m if q_block is None else NoiseOverride(m, q_block)
+
+    def frozen(self, q_block: Tensor | None) -> MotionModel:
+        m = copy.deepcopy(self.lstm).requires_grad_(False)
+        return m if q_block is None else NoiseOverride(m, q_block.detach())
+
+    def summary(self) -> dict[str, Any]:
+        return {"lstm_weights": int(sum(p.numel() for p in self.lstm.parameters()))}
+
+
+def motion_misfit(model: MotionModel, predict_name: str = "ekf") -> str | None:
+    """Why ``learner=backprop`` cannot learn ``model``'s parameters (``None`` where it can)."""
+    from dslearn.learning.sfm_fit import FittedSocialForce
+    from dslearn.models.constant_velocity import ConstantVelocity
+    from dslearn.models.gp import GPMotionModel
+    from dslearn.models.gp_backends.exact import OnlineGP
+    from dslearn.models.lstm import SocialLSTM
+    from dslearn.models.social_force import SocialForce
+
+    if isinstance(model, (ConstantVelocity, SocialLSTM)):
+        return None
+    if isinstance(model, SocialForce):
+        return ("the fitted social force sets its desired velocities per episode and fits offline (model=sfm "
+                "learns the social force's numbers)" if isinstance(model, FittedSocialForce) else None)
+    if isinstance(model, GPMotionModel):
+        if not isinstance(model.gp, OnlineGP):
+            return f"a GP with model.variant={model.variant} (only the exact GPs: model.variant=exact|window)"
+        if model.inputs != "mean":
+            return "a GP with model.inputs=belief (choose model.inputs=mean)"
+        if predict_name not in GP_STEPS:
+            return f"a GP under filter={predict_name} (the GP's steps: {'|'.join(GP_STEPS)})"
+        return None
+    return f"{type(model).__name__} has no differentiable parameters here"
+
+
+def takes_q(model: MotionModel) -> bool:
+    """Whether ``learn: [q]`` applies to ``model`` (:attr:`MotionParameters.takes_q`: not for a GP)."""
+    from dslearn.models.gp import GPMotionModel
+
+    return not isinstance(model, GPMotionModel)
+
+
+def motion_parameters(model: MotionModel, num_agents: int, dt: float) -> MotionParameters:
+    """The :class:`MotionParameters` of ``model`` (:func:`motion_misfit` first)."""
+    from dslearn.models.constant_velocity import ConstantVelocity
+    from dslearn.models.gp import GPMotionModel
+    from dslearn.models.lstm import SocialLSTM
+
+    if isinstance(model, ConstantVelocity):
+        return LinearParameters(num_agents, model.matrix(dt)[:AGENT_DIM, :AGENT_DIM])
+    if isinstance(model, GPMotionModel):
+        return GPParameters(model)
+    if isinstance(model, SocialLSTM):
+        return LSTMParameters(model)
+    return SocialForceParameters(model)
+
+
 class BackpropParameters(nn.Module):
-    """The learnable numbers of a distributed filter with a linear motion model and position sensors, in float64.
+    """The learnable numbers of a distributed filter with position sensors, in float64.
 
     Args:
         num_agents: targets ``A`` (state ``4A``).
-        f_block, q_block: the motion model's agent block and its process noise (4 x 4; ``q_block`` diagonal
-            is learned, its off-diagonal entries are dropped).
+        f_block, q_block: the linear motion model's agent block (used where ``motion`` is ``None``) and the
+            initial process noise (4 x 4; its diagonal is learned, its off-diagonal entries are dropped).
         r: the sensors' noise covariance (2 x 2).
         fusion: the configured fusion (its class, ``L`` and rule weights and omega are the initial values).
         adjacency: ``(S, S)`` communication graph.
         learn: which of :data:`LEARNABLE` get gradients (the others stay at their initial values).
+        motion: the motion model's numbers (:func:`motion_parameters`); ``None``: ``model=lin`` with ``f_block``.
+            For a model other than ``lin``, the learned ``Q`` replaces the model's own noise only where
+            ``learn`` lists ``q``; a model without ``q`` (:attr:`MotionParameters.takes_q`) refuses it.
     """
 
-    def __init__(self, num_agents: int, f_block: Tensor, q_block: Tensor, r: Tensor, fusion: Fusion,
-                 adjacency: Tensor, learn=("q", "r")):
+    def __init__(self, num_agents: int, f_block: Tensor | None, q_block: Tensor, r: Tensor, fusion: Fusion,
+                 adjacency: Tensor, learn=("q", "r"), motion: MotionParameters | None = None):
         super().__init__()
         dt = torch.float64
         self.num_agents, self.base_fusion = int(num_agents), fusion
         self.register_buffer("mask", graph_mask(adjacency))
-        self.f_block = nn.Parameter(f_block.detach().to(dt).clone())
+        self.motion_params = motion if motion is not None else LinearParameters(num_agents, f_block)
         self.q_log = nn.Parameter(q_block.detach().to(dt).diagonal().log().clone())
         self.r_raw = nn.Parameter(log_cholesky_raw(r.detach().to(dt)))
         self.logits = nn.Parameter(weight_logits(torch.as_tensor(fusion.weights), self.mask))
@@ -155,9 +503,25 @@ class BackpropParameters(nn.Module):
         self.set_learn(learn)
 
     def set_learn(self, learn) -> None:
-        names = {"model": "f_block", "q": "q_log", "r": "r_raw", "weights": "logits", "omega": "omega_log"}
+        learn = tuple(learn)
+        if "q" in learn and not self.motion_params.takes_q:
+            raise ConfigError(f"learner.learn=[q]: the {self.motion_params.kind} motion model's process noise is "
+                              f"its own predictive variance (learned through model); drop q")
+        self.learn = learn
+        names = {"q": "q_log", "r": "r_raw", "weights": "logits", "omega": "omega_log"}
         for k, p in names.items():
             getattr(self, p).requires_grad_(k in learn)
+        self.motion_params.requires_grad_("model" in learn)
+
+    @property
+    def f_block(self) -> Tensor:
+        """The linear model's agent block (``model=lin``)."""
+        return self.motion_params.f_block
+
+    def _q_block(self) -> Tensor | None:
+        """The agent block of ``Q`` a pass uses: ``q``'s (always for ``lin``, else where ``q`` is learned) or
+        ``None`` (the model's own noise)."""
+        return self.Q() if self.motion_params.kind == "lin" or "q" in self.learn else None
 
     # the numbers
     def Q(self) -> Tensor:
@@ -173,8 +537,8 @@ class BackpropParameters(nn.Module):
         return self.omega_log.exp()
 
     # the parts
-    def motion(self) -> LinearMotion:
-        return LinearMotion(self.num_agents, self.f_block, self.Q())
+    def motion(self) -> MotionModel:
+        return self.motion_params.build(self._q_block())
 
     def observation(self) -> LinearSensor:
         return LinearSensor(self.R())
@@ -189,7 +553,7 @@ class BackpropParameters(nn.Module):
             f.omega = self.omega()
         return f
 
-    def detached(self) -> tuple[LinearMotion, LinearSensor, Fusion]:
+    def detached(self) -> tuple[MotionModel, LinearSensor, Fusion]:
         """The learned parts with plain tensors (for tracking the test episodes)."""
         with torch.no_grad():
             f = self.fusion()
@@ -198,13 +562,13 @@ class BackpropParameters(nn.Module):
                     setattr(f, k, getattr(f, k).detach().clone())
             if isinstance(f.omega, Tensor):
                 f.omega = float(f.omega)
-            return (LinearMotion(self.num_agents, self.f_block.detach().clone(), self.Q().detach()),
-                    LinearSensor(self.R().detach()), f)
+            q = self._q_block()
+            return (self.motion_params.frozen(None if q is None else q.detach()), LinearSensor(self.R().detach()), f)
 
     def summary(self) -> dict[str, Any]:
         with torch.no_grad():
             return {"q_diag": self.q_log.exp().tolist(), "r": self.R().tolist(), "omega": float(self.omega()),
-                    "weights": self.W().tolist(), "f_block": self.f_block.tolist()}
+                    "weights": self.W().tolist(), **self.motion_params.summary()}
 
 
 # --------------------------------------------------------------------------------------------------- the losses
@@ -289,11 +653,12 @@ class FitHistory:
 def fit(params: BackpropParameters, train: Episodes | Measurements, network, ctx: StepContext,
         init: Callable[[Measurements, Fusion], tuple[Tensor, Tensor]], *, epochs: int = 50, lr: float = 0.05,
         batch: int | None = None, loss: str = "innovation", seed: int = 0, first_step: int = 2,
-        predict_step=None, optimizer: str = "adam") -> FitHistory:
+        predict_step=None, optimizer: str = "adam", model_lr: float | None = None) -> FitHistory:
     """Adam on the learnable parameters; each epoch visits the training episodes once in a seeded random order,
     ``batch`` episodes per step (``None``: all). ``optimizer=lbfgs``: full-batch L-BFGS (strong Wolfe line
     search), ``epochs`` outer steps of up to 20 iterations each, ``lr`` its initial step.
-    ``loss=supervised`` needs :class:`~dslearn.episodes.Episodes`."""
+    ``loss=supervised`` needs :class:`~dslearn.episodes.Episodes`. ``model_lr``: Adam's step size for the motion
+    model's own parameters (``None``: ``lr``; an LSTM's weights want a far smaller one than the log-noises)."""
     check_choice("learner.loss", loss, LOSSES)
     check_choice("learner.optimizer", optimizer, OPTIMIZERS)
     if loss == "supervised" and not isinstance(train, Episodes):
@@ -327,7 +692,10 @@ def fit(params: BackpropParameters, train: Episodes | Measurements, network, ctx
             hist.loss.append(float(opt.step(closure).detach()))
             hist.seconds.append(time.perf_counter() - t0)
         return hist
-    opt = torch.optim.Adam(trainable, lr=lr)
+    own = {id(p) for p in params.motion_params.parameters()}
+    groups = [{"params": [p for p in trainable if id(p) not in own]},
+              {"params": [p for p in trainable if id(p) in own], "lr": lr if model_lr is None else model_lr}]
+    opt = torch.optim.Adam([g for g in groups if g["params"]], lr=lr)
     size = n if batch is None else min(int(batch), n)
     for _ in range(epochs):
         t0, total = time.perf_counter(), 0.0
@@ -361,6 +729,7 @@ class BackpropLearning:
             numbers shared by the nodes; they are then frozen and tracked with the configured fusion: "train
             each node offline, then run consensus"; learns no consensus numbers, so ``learn`` lists neither
             ``weights`` nor ``omega``).
+        model_lr: Adam's step size for the motion model's own parameters (``learn: [model]``); ``null``: ``lr``.
     """
 
     name: ClassVar[str] = "backprop"
@@ -371,12 +740,16 @@ class BackpropLearning:
     loss: str = "innovation"
     learn: Any = field(default_factory=lambda: ["q", "r", "weights", "omega"])
     train_fusion: str = "consensus"
+    model_lr: Any = None
 
     def __post_init__(self) -> None:
         if isinstance(self.epochs, bool) or not isinstance(self.epochs, int) or self.epochs < 0:
             raise ConfigError(f"learner.epochs={self.epochs!r} must be an integer >= 0")
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not 0 < self.lr < float("inf"):
             raise ConfigError(f"learner.lr={self.lr!r} must be a finite number > 0")
+        if self.model_lr is not None and (isinstance(self.model_lr, bool) or not isinstance(self.model_lr, (int, float))
+                                          or not 0 < self.model_lr < float("inf")):
+            raise ConfigError(f"learner.model_lr={self.model_lr!r} must be a finite number > 0 or null (= learner.lr)")
         if self.batch is not None and (isinstance(self.batch, bool) or not isinstance(self.batch, int)
                                        or self.batch < 1):
             raise ConfigError(f"learner.batch={self.batch!r} must be an integer >= 1 or null (all episodes)")
@@ -386,6 +759,9 @@ class BackpropLearning:
         if bad or len(set(learn)) != len(learn):
             raise ConfigError(f"learner.learn={learn!r}: each of {list(LEARNABLE)} at most once")
         self.learn = learn
+        if self.model_lr is not None and "model" not in learn:
+            raise ConfigError(f"learner.model_lr={self.model_lr!r} is the step size of the motion model's parameters, "
+                              f"but learner.learn={learn!r} does not list model; remove it or add model")
         check_choice("learner.train_fusion", self.train_fusion, TRAIN_FUSIONS)
         if self.train_fusion == "individual" and {"weights", "omega"} & set(learn):
             raise ConfigError(f"learner.train_fusion=individual learns no consensus numbers: learner.learn={learn!r} "

@@ -17,9 +17,9 @@ from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, Scenar
 from dslearn.filters.distributed import initial_belief
 from dslearn.fusion.strategies import Fusion
 from dslearn.learning.learners import NoLearning, OfflineLearning, OnlineLearning, refuse
-from dslearn.learning.backprop import SUPPORTED_MODELS, BackpropLearning, BackpropParameters, fit
+from dslearn.learning.backprop import (SUPPORTED_MODELS, BackpropLearning, BackpropParameters, fit, motion_misfit,
+                                       motion_parameters, takes_q)
 from dslearn.learning.online import OnlineLearner
-from dslearn.models.constant_velocity import ConstantVelocity
 from dslearn.models.observation import LinearPositionObservation
 from dslearn.methods.base import require
 from dslearn.models.base import MotionModel, ObservationModel
@@ -87,21 +87,34 @@ class DistributedFilter:
         raise refuse(self.learner, why, allowed)
 
     def _check_backprop(self) -> None:
-        """learner=backprop: a linear motion model (model=lin) and the linear position sensor, a fusion with what
-        ``learner.learn`` asks for; a one-line ConfigError otherwise."""
-        if not isinstance(self.model, ConstantVelocity) or not isinstance(self.observation, LinearPositionObservation):
-            raise ConfigError(f"learner=backprop supports model={'|'.join(SUPPORTED_MODELS)} with observation=linear, "
-                              f"not model={self.model_name} with observation {type(self.observation).__name__}")
+        """learner=backprop: a motion model whose numbers it can learn (:func:`~dslearn.learning.backprop.motion_misfit`),
+        the linear position sensor, a fusion with what ``learner.learn`` asks for; a one-line ConfigError otherwise."""
+        why = backprop_misfit(self.model, self.observation, self.predict, self.model_name)
+        if why is not None:
+            raise ConfigError(why)
+        if "q" in self.learner.learn and not takes_q(self.model):
+            raise ConfigError(f"learner.learn=[q]: model={self.model_name}'s process noise is its own predictive "
+                              f"variance, learned through its hyperparameters (learn: [model]); drop q")
         self.learner.check_fusion(self.fusion)
 
-    def _backprop(self, scenario: Scenario, network: SensorNetwork, train: Episodes, ctx, seed: int):
-        """Learn the filter's numbers on the training episodes (:mod:`dslearn.learning.backprop`); the learned parts."""
-        a = self.model.num_agents
-        F = self.model.matrix(ctx.dt)[:AGENT_DIM, :AGENT_DIM]
-        Q = self.model.noise_cov(torch.zeros(1, self.model.state_dim, dtype=torch.float64), ctx)[0, :AGENT_DIM, :AGENT_DIM]
+    def _backprop(self, scenario: Scenario, network: SensorNetwork, train: Episodes, ctx, seed: int, learner):
+        """Learn the filter's numbers on the training episodes (:mod:`dslearn.learning.backprop`); the learned parts.
+        The motion model first learns as it would alone: an offline model (the LSTM) fits offline, a GP gathers
+        its data sets online (Algorithm 1, ``learner``); then its parameters learn through the filter."""
+        if self.model.learns_offline:
+            self.model.fit_offline(train.states, ctx.dt, seed=seed)
+        if self.model.learnable:
+            learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
+        a = self.model.state_dim // AGENT_DIM
         R = self.observation.noise_cov(torch.zeros(1, AGENT_DIM, dtype=torch.float64))[0]
+        motion = motion_parameters(self.model, a, ctx.dt)
+        if motion.takes_q:
+            Q = self.model.noise_cov(torch.zeros(1, self.model.state_dim, dtype=torch.float64), ctx)[0, :AGENT_DIM, :AGENT_DIM]
+        else:  # the model's own noise (a GP's variance): q is not learned, this block is never used
+            Q = torch.eye(AGENT_DIM, dtype=torch.float64)
         train_fusion = self.learner.training_fusion(self.fusion)
-        params = BackpropParameters(a, F, Q, R, train_fusion, network.adjacency, learn=self.learner.learn)
+        params = BackpropParameters(a, None, Q, R, train_fusion, network.adjacency, learn=self.learner.learn,
+                                    motion=motion)
 
         def init(ep, fusion):
             return initial_belief(ep, network, ctx.dt, fusion, scenario.area, self.prior_pos_std, self.prior_vel_std)
@@ -110,10 +123,12 @@ class DistributedFilter:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             hist = fit(params, train.to(torch.float64, train.meas.device), network, ctx, init, epochs=lr.epochs,
-                       lr=lr.lr, batch=lr.batch, loss=lr.loss, seed=seed, predict_step=self.predict)
+                       lr=lr.lr, batch=lr.batch, loss=lr.loss, seed=seed, predict_step=self.predict,
+                       model_lr=lr.model_lr)
         self.learned = {**params.summary(), "loss": hist.loss, "seconds_per_epoch": hist.seconds_per_epoch}
         _LOG.info("learner=backprop: %s", {k: v for k, v in self.learned.items() if k != "loss"})
         model, obs, fusion = params.detached()
+        self.learned_model = model  # the motion model it tracks with (the learned numbers)
         # train_fusion=individual: the numbers learned by the nodes alone, tracked with the configured fusion
         return model, obs, (fusion if train_fusion is self.fusion else self.fusion)
 
@@ -134,15 +149,20 @@ class DistributedFilter:
     def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
                  seed: int) -> Estimates:
         ctx, model, fusion, obs = scenario.ctx(), self.model, self.fusion, self.observation
-        if self.learner.name == "backprop":
-            model, obs, fusion = self._backprop(scenario, network, train, ctx, seed)
-        learner = OnlineLearner(
-            network, model, obs, fusion, ctx,
-            init=lambda ep: initial_belief(ep, network, ctx.dt, fusion, scenario.area, self.prior_pos_std,
-                                           self.prior_vel_std),
-            predict_step=self.predict, learn_gate_std=self.learn_gate_std,
-        )
+
+        def online(model, obs, fusion):
+            return OnlineLearner(
+                network, model, obs, fusion, ctx,
+                init=lambda ep: initial_belief(ep, network, ctx.dt, fusion, scenario.area, self.prior_pos_std,
+                                               self.prior_vel_std),
+                predict_step=self.predict, learn_gate_std=self.learn_gate_std,
+            )
+
+        learner = online(model, obs, fusion)
         kind = self.learner.name
+        if kind == "backprop":
+            model, obs, fusion = self._backprop(scenario, network, train, ctx, seed, learner)
+            learner = online(model, obs, fusion)
         if kind == "offline":  # supervised: learns from the training episodes' true tracks
             model.fit_offline(train.states, ctx.dt, seed=seed)
         if kind in ("online", "offline") and learner.learnable:  # Algorithm 1 (offline: a learning observation model)
@@ -163,13 +183,25 @@ def natural_learner(model: MotionModel, observation: ObservationModel):
 
 def allowed_learners(model: MotionModel, observation: ObservationModel) -> tuple[str, ...]:
     """The learners the distributed filter can use with these parts (the natural one first)."""
+    bp = ("backprop",) if backprop_misfit(model, observation) is None else ()
     if model.learns_offline:
-        return ("offline",)
+        return ("offline", *bp)
     if model.learnable or observation.learnable:
-        return ("online", "none")
-    if isinstance(model, ConstantVelocity) and isinstance(observation, LinearPositionObservation):
-        return ("none", "backprop")
-    return ("none",)
+        return ("online", "none", *bp)
+    return ("none", *bp)
+
+
+def backprop_misfit(model: MotionModel, observation: ObservationModel, predict=None, model_name: str | None = None) -> str | None:
+    """Why ``learner=backprop`` does not fit these parts (``None`` where it does): a motion model whose numbers it
+    can learn (:func:`~dslearn.learning.backprop.motion_misfit`) and the linear position sensor (its ``R``)."""
+    name = f"model={model_name}" if model_name else f"model {type(model).__name__}"
+    if not isinstance(observation, LinearPositionObservation):
+        return (f"learner=backprop learns the linear position sensor's R (observation=linear), not observation "
+                f"{type(observation).__name__}")
+    why = motion_misfit(model, getattr(predict, "name", "ekf"))
+    if why is not None:
+        return f"learner=backprop supports model={'|'.join(SUPPORTED_MODELS)} with observation=linear, not {name}: {why}"
+    return None
 
 
 def beliefs_to_estimates(mean: torch.Tensor, info: torch.Tensor, network: SensorNetwork) -> Estimates:

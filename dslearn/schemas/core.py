@@ -485,7 +485,10 @@ def estimate_core_memory(cfg: DictConfig) -> dict[str, float]:
       episodes of ``gp_increment`` peak 596 MB above the idle process, this term 776 MB);
     * ``adf`` (``filter=adf`` only): the GP-ADF's kept :math:`(K + \sigma^2 I)^{-1}` and data-only kernel
       factor, two ``cap x cap`` buffers per node (grown by half), and its per-query temporaries
-      (:data:`dslearn.filters.adf.CHUNK_ELEMENTS` elements each, a few at a time).
+      (:data:`dslearn.filters.adf.CHUNK_ELEMENTS` elements each, a few at a time);
+    * ``particles`` (``filter=pf`` only): the particle clouds of one prediction of the test batch, the particles,
+      their noise draws, means and predictive draws and the centred cloud, ``5 x (S, B_test, N, 4m)``, and the
+      model's evaluation in chunks (:data:`dslearn.filters.particle.CHUNK_ELEMENTS` elements, a few at a time).
 
     ``K`` = horizon / dt steps, ``m`` agents, ``S`` nodes. The terms are upper-bound shaped;
     fixed costs (the Python process, torch: ~0.5 GB) are not included.
@@ -523,6 +526,13 @@ def estimate_core_memory(cfg: DictConfig) -> dict[str, float]:
 
         cap = 1.5 * n + 64  # (S, cap, cap) each, growing by half, and its per-query temporaries
         out["adf"] = s * 2.0 * cap * cap * f8 + 4.0 * min(CHUNK_ELEMENTS, s * max(b_te, 1) * n * n) * f8
+    if predict is not None and str(predict.get("_target_", "")).startswith("dslearn.filters.particle."):
+        from dslearn.filters.particle import CHUNK_ELEMENTS as PF_CHUNK  # filter=pf: the clouds and the chunks
+
+        count = predict.get("particles", 500)
+        if isinstance(count, int) and not isinstance(count, bool) and count > 0:  # else refused by its own check
+            cloud = s * max(b_te, 1) * count * d
+            out["particles"] = 5.0 * cloud * f8 + 4.0 * min(PF_CHUNK, cloud * max(n, 1)) * f8
     return out
 
 

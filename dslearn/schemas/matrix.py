@@ -147,6 +147,43 @@ def _method_key(combo) -> tuple[str, ...]:
     return tuple(line for line in combo if head(line) != "scenario" and not head(line).startswith("scenario."))
 
 
+def _option(combo, group: str) -> str | None:
+    """The ``group=<option>`` of a combination's override lines (``None`` where it has none)."""
+    for line in combo:
+        key, _, value = line.partition("=")
+        if key.lstrip("+~") == group:
+            return value
+    return None
+
+
+def left_out(cfg: DictConfig, combo) -> str | None:
+    """Why the sweep leaves the combination ``combo`` out (``task.left_out``: a preset on some scenarios, with the
+    reason), ``None`` where it does not. Each entry must name a ``conf/method`` preset, ``conf/scenario`` options
+    and a reason: a :class:`~dslearn.errors.ConfigError` otherwise, before any job (a typo must not run the cells
+    it meant to leave out)."""
+    from dslearn.conf_paths import CONF_DIR
+
+    entries = cfg.task.get("left_out") if str(cfg.task.get("name")) == "matrix" else None
+    if not entries:
+        return None
+    methods = sorted(p.stem for p in (CONF_DIR / "method").glob("*.yaml"))
+    scenarios = sorted(p.stem for p in (CONF_DIR / "scenario").glob("*.yaml"))
+    method, scenario = _option(combo, "method"), _option(combo, "scenario")
+    found = None
+    for k, e in enumerate(entries):
+        if e.method not in methods:
+            raise ConfigError(f"task.left_out[{k}].method={e.method!r} is not a method preset; choose one of {methods}")
+        bad = [sc for sc in e.scenarios if sc not in scenarios]
+        if bad or not e.scenarios:
+            raise ConfigError(f"task.left_out[{k}].scenarios={list(e.scenarios)!r}: each must be one of {scenarios} "
+                              f"(at least one)")
+        if not str(e.why).strip():
+            raise ConfigError(f"task.left_out[{k}].why is empty: say why the cells are left out")
+        if found is None and e.method == method and scenario in e.scenarios:
+            found = str(e.why).strip()
+    return found
+
+
 def select_cells(combos, compose) -> tuple[list[list[str]], list[dict]]:
     """The combinations of a sweep that become jobs (in order) and one record per combination: :func:`judge`'s,
     plus ``job`` (its job number, ``None`` where it does not run) and ``overrides`` (its lines).
@@ -157,10 +194,15 @@ def select_cells(combos, compose) -> tuple[list[list[str]], list[dict]]:
     simulation's parameters, on a scenario that simulates no social forces) does not fit that scenario
     either, provided it is built for another scenario of the sweep; a method built for no scenario of the
     sweep is a configuration error (:class:`~dslearn.errors.ConfigError` with the first error), so a bad
-    value is never turned into "n/a" cells."""
+    value is never turned into "n/a" cells. A cell that fits but that the sweep's ``task.left_out`` lists
+    (:func:`left_out`) is dropped with that reason."""
     records = []
     for combo in combos:
-        rec = {**judge(compose(list(combo))), "overrides": " ".join(combo)}
+        cfg = compose(list(combo))
+        rec = {**judge(cfg), "overrides": " ".join(combo)}
+        why = left_out(cfg, combo)
+        if why is not None and rec["reason"] is None:
+            rec["reason"] = f"{rec['method']} on scenario {rec['scenario']} is left out of this sweep (task.left_out): {why}"
         records.append((list(combo), rec))
     built = {}
     for combo, rec in records:

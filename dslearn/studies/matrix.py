@@ -15,8 +15,8 @@ A method that does not fit the scenario is refused before any work (:meth:`Metho
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, List
 
 import pandas as pd
 import torch
@@ -40,13 +40,26 @@ CELL_COLUMNS = ("job", "method", "scenario", "units", "reason", "overrides")
 
 
 @dataclass
+class LeftOut:
+    """Cells a sweep leaves out although they fit: the preset ``method`` (a ``conf/method`` option) on each of
+    ``scenarios`` (``conf/scenario`` options), for the reason ``why`` (measured cost beyond the sweep's budget)."""
+
+    method: str = ""
+    scenarios: List[str] = field(default_factory=list)
+    why: str = ""
+
+
+@dataclass
 class MatrixSettings:
-    """``task=matrix``: the episodes of a cell."""
+    """``task=matrix``: the episodes of a cell; ``left_out``: the cells a matrix sweep leaves out, with the reason
+    (:func:`dslearn.schemas.matrix.select_cells` records them in ``skipped_cells.csv`` like the cells that do not
+    fit; a run of one cell, outside a sweep, runs it)."""
 
     _target_: str = "dslearn.studies.matrix.MatrixCell"
     name: str = "matrix"
     train_episodes: int = ranged(30, ge=0)
     test_episodes: int = ranged(20, ge=1)
+    left_out: List[LeftOut] = field(default_factory=list)
 
 
 @dataclass

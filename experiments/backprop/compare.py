@@ -3,11 +3,12 @@ consensus", on held-out episodes of Yu et al.'s scenario and of a recorded scene
 
     python experiments/backprop/compare.py                      # yu_two_agents and eth_zara1, 20 + 20 episodes
     python experiments/backprop/compare.py --scenarios yu_two_agents --train 10 --test 10 --out cmp
+    python experiments/backprop/compare.py --family gp          # the increment GP's hyperparameters (or lstm)
 
 Each variant is a matrix cell (``dslearn-run task=matrix method=... scenario=...``) with the same seed, hence
 the same training and test episodes; the tracking RMSE and NEES are the cell's own rows (sensor average over
 the test episodes), the prediction error rolls the variant's motion model (hand-set or learned transition
-matrix) out from every test episode's true initial state (Yu et al. Table II's protocol,
+matrix, the GP with its learned hyperparameters, the fine-tuned LSTM) out from every test episode's true initial state (Yu et al. Table II's protocol,
 :func:`dslearn.metrics.tracking.prediction_error`). Writes ``compare.csv`` (one row per scenario and variant)
 and ``compare.md`` into ``--out`` (default: a new ``backprop-compare/<date>_<time>``) and prints the table.
 """
@@ -21,7 +22,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-#: variant -> the overrides on top of ``task=matrix scenario=<s>``
+#: variant -> the overrides on top of ``task=matrix scenario=<s>`` (``--family lin``: the LIN hybrid filter)
 VARIANTS = {
     "hand-set": ["method=ekf_lin_hybrid"],
     "nodes alone, frozen [q,r]": ["method=ekf_lin_hybrid_backprop", "learner.train_fusion=individual",
@@ -31,6 +32,26 @@ VARIANTS = {
     "nodes alone, frozen [q,r,model]": ["method=ekf_lin_hybrid_backprop", "learner.train_fusion=individual",
                                          "learner.learn=[q,r,model]"],
     "end to end [q,r,model]": ["method=ekf_lin_hybrid_backprop", "learner.learn=[q,r,model]"],
+}
+_GP = ["method=ekf_gp_hybrid", "learner=backprop"]
+_LSTM = ["method=ekf_lstm_hybrid", "learner=backprop", "learner.model_lr=1e-4"]
+#: ``--family`` -> its variants: the model's own learner (online GP, offline LSTM), then learner=backprop
+FAMILIES = {
+    "lin": VARIANTS,
+    "gp": {
+        "online GP (hand-set hyperparameters)": ["method=ekf_gp_hybrid"],
+        "nodes alone, frozen [model,r]": [*_GP, "learner.train_fusion=individual", "learner.learn=[model,r]"],
+        "end to end [r,weights,omega]": [*_GP, "learner.learn=[r,weights,omega]"],
+        "end to end [model,r]": [*_GP, "learner.learn=[model,r]"],
+        "end to end [model,r,weights,omega]": [*_GP, "learner.learn=[model,r,weights,omega]"],
+    },
+    "lstm": {
+        "offline LSTM": ["method=ekf_lstm_hybrid"],
+        "nodes alone, frozen [model,q,r]": [*_LSTM, "learner.train_fusion=individual", "learner.learn=[model,q,r]"],
+        "end to end [q,r,weights,omega]": [*_LSTM, "learner.learn=[q,r,weights,omega]"],
+        "end to end [model,q,r]": [*_LSTM, "learner.learn=[model,q,r]"],
+        "end to end [model,q,r,weights,omega]": [*_LSTM, "learner.learn=[model,q,r,weights,omega]"],
+    },
 }
 
 
@@ -58,13 +79,17 @@ def run_variant(scenario: str, overrides: list[str], train: int, test: int, seed
     method, scen = cell.method, cell.scenario
     ctx = scen.ctx()
     learned = getattr(method, "learned", None)
-    if learned is None:
-        f_block = method.model.matrix(ctx.dt)[:AGENT_DIM, :AGENT_DIM]
-    else:
-        f_block = torch.tensor(learned["f_block"], dtype=torch.float64)
-    model = LinearMotion(method.model.num_agents, f_block.to(torch.float64), torch.zeros(4, 4, dtype=torch.float64))
+    per_node = False
+    if "f_block" in (learned or {}) or (learned is None and hasattr(method.model, "matrix")):  # the LIN family
+        f_block = (method.model.matrix(ctx.dt)[:AGENT_DIM, :AGENT_DIM] if learned is None
+                   else torch.tensor(learned["f_block"], dtype=torch.float64))
+        model = LinearMotion(method.model.num_agents, f_block.to(torch.float64), torch.zeros(4, 4, dtype=torch.float64))
+    else:  # the model it tracked with: the learned one, or the model after its own learner
+        model = getattr(method, "learned_model", method.model)
+        per_node = bool(getattr(model, "learnable", False))  # a GP: one per node
     testeps, _ = sample_split(scen, cell.scenario_network, cell.seed, test, train, torch.float64, "cpu")
-    pe = prediction_error(model, testeps.states.to(torch.float64), 1, ctx, per_node=False)[0]  # (B,)
+    nodes = cell.scenario_network.num_nodes if per_node else 1
+    pe = prediction_error(model, testeps.states.to(torch.float64), nodes, ctx, per_node=per_node).mean(0)  # (B,)
     out["pred_err"], out["pred_err_std"] = float(pe.mean()), float(pe.std()) if len(pe) > 1 else float("nan")
     out["seconds"] = wall
     if learned is not None:
@@ -82,12 +107,14 @@ def main(argv=None) -> None:
     p.add_argument("--train", type=int, default=20, help="training episodes (default: %(default)s)")
     p.add_argument("--test", type=int, default=20, help="held-out test episodes (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--family", default="lin", choices=sorted(FAMILIES),
+                   help="the motion model whose numbers are learned (default: %(default)s)")
     p.add_argument("--out", default=None, help="output folder (default: a new backprop-compare/<date>_<time>)")
     a = p.parse_args(argv)
     out = Path(a.out or Path("backprop-compare") / time.strftime("%Y-%m-%d_%H-%M-%S"))
     rows = []
     for s in a.scenarios.split(","):
-        for name, ov in VARIANTS.items():
+        for name, ov in FAMILIES[a.family].items():
             r = {"variant": name, **run_variant(s, ov, a.train, a.test, a.seed)}
             rows.append(r)
             print(f"{s:14s} {name:38s} rmse {r['rmse']:.3f}  nees/2 {r['nees_pos']:.3f}  pred_err "
