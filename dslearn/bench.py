@@ -31,8 +31,8 @@ Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
              online GP learning (hybrid consensus); reference (per-node loops) on the first steps.
   filters    the cost per step of each prediction step of the distributed filter (filter=default, ukf,
              ukf_mm, adf; pf with 100 / 500 / 2,000 particles) with the GP learned online, S = 10 / 50 / 200
-             nodes (hybrid consensus), and of one training epoch of learner=backprop against the EKF's forward
-             pass on the same episodes.
+             nodes (hybrid consensus), and of one training epoch of learner=backprop (LIN; the social force's
+             and the GP's own parameters too) against the EKF's forward pass on the same episodes.
   dtype      float32 vs float64 on the same seeds (time and accuracy of the Yu study).
   studies    wall time of the other studies' default runs (``dslearn-run ...`` subprocesses).
 
@@ -426,28 +426,41 @@ def item_filters(filter: str, nodes: int, steps: int = 50, model: str = "gp_incr
                  peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device))]
 
 
-def item_backprop(nodes: int, episodes: int = 8, steps: int = 40, epochs: int = 3, device: str = "cpu") -> list[dict]:
+def item_backprop(nodes: int, episodes: int = 8, steps: int = 40, epochs: int = 3, device: str = "cpu",
+                  model: str = "lin") -> list[dict]:
     """One training epoch of ``learner=backprop`` (forward through the filter and the L consensus rounds, backward,
-    Adam step; Q, R, weights and omega learned) on ``episodes`` episodes of ``steps`` steps, against one forward pass
-    of the same EKF on the same episodes without gradients (the reference column: its time, and epoch / forward)."""
+    Adam step) on ``episodes`` episodes of ``steps`` steps, against one forward pass of the same EKF on the same
+    episodes without gradients (the reference column: its time, and epoch / forward). ``model=lin``: Q, R, weights
+    and omega learned; ``sfm`` / ``gp_increment``: the model's own parameters too (the GP on the data it gathered
+    online on the same episodes first, Q not learned)."""
     from dslearn.filters.distributed import track
-    from dslearn.learning.backprop import BackpropParameters, fit
+    from dslearn.learning.backprop import BackpropParameters, fit, motion_parameters
     from dslearn.types import AGENT_DIM
 
-    cfg = _network_cfg(nodes, steps, "lin")
+    cfg = _network_cfg(nodes, steps, model)
     study, ctx, ep, init = _network_world(cfg, device, episodes)
     network, mdl, obs, fusion = study.network, study.model, study.observation, study.fusion
+    if mdl.learnable:  # the GP: its data sets first, online on the same episodes, one at a time (Algorithm 1)
+        for i in range(len(ep)):
+            one = ep.measurements.select(slice(i, i + 1))
+            track(one, network, mdl, obs, fusion, ctx, init(one, fusion), learn=True)
+    motion = motion_parameters(mdl, mdl.state_dim // AGENT_DIM, ctx.dt)
     zeros = torch.zeros(1, mdl.state_dim, dtype=torch.float64, device=device)
-    params = BackpropParameters(mdl.num_agents, mdl.matrix(ctx.dt)[:AGENT_DIM, :AGENT_DIM],
-                                mdl.noise_cov(zeros, ctx)[0, :AGENT_DIM, :AGENT_DIM],
+    q_block = (mdl.noise_cov(zeros, ctx)[0, :AGENT_DIM, :AGENT_DIM] if motion.takes_q
+               else torch.eye(AGENT_DIM, dtype=torch.float64, device=device))
+    learn = ["q", "r", "weights", "omega"] if model == "lin" else [*(["q"] if motion.takes_q else []), "model", "r",
+                                                                    "weights", "omega"]
+    params = BackpropParameters(mdl.state_dim // AGENT_DIM, None, q_block,
                                 obs.noise_cov(torch.zeros(1, AGENT_DIM, dtype=torch.float64, device=device))[0],
-                                fusion, network.adjacency, learn=["q", "r", "weights", "omega"])
+                                fusion, network.adjacency, learn=learn, motion=motion)
     hist = fit(params, ep, network, ctx, init, epochs=epochs, lr=0.05)
     t_epoch = sum(hist.seconds[1:]) / max(len(hist.seconds) - 1, 1)  # the first epoch warms up
     with torch.no_grad():
         _, t_fwd = _timed(lambda: track(ep.measurements, network, mdl, obs, fusion, ctx, init(ep.measurements, fusion)),
                           device)
-    return [dict(workload="filters", item=f"learner=backprop S={nodes}, {episodes} episodes x {steps} steps: one epoch, hybrid",
+    what = "" if model == "lin" else f" model={model} ({'+'.join(learn)})"
+    return [dict(workload="filters", item=f"learner=backprop{what} S={nodes}, {episodes} episodes x {steps} steps: one "
+                                          f"epoch, hybrid",
                  nodes=nodes, wall_s=t_epoch, ms_per_step=1e3 * t_epoch / steps,
                  ms_per_node_step=1e3 * t_epoch / (steps * nodes), peak_mb=_peak_mb(), cuda_peak_mb=_cuda_peak_mb(device),
                  reference_s=t_fwd, ratio=t_epoch / t_fwd,
@@ -579,6 +592,8 @@ def plan(workloads, quick: bool, a) -> list:
                 steps.append(("item_filters", dict(filter="pf", nodes=s, steps=(20 if quick else 100), device=a.device,
                                                    particles=n)))
             steps.append(("item_backprop", dict(nodes=s, episodes=(4 if quick else 8), device=a.device)))
+            for m in ("sfm", "gp_increment"):  # the motion model's own parameters as well
+                steps.append(("item_backprop", dict(nodes=s, episodes=(4 if quick else 8), device=a.device, model=m)))
     if "dtype" in workloads:
         tr, te = (20, 20) if quick else (200, 50)
         steps.append(("parallel", [("item_protocol", dict(model="gp_increment", fusion="hybrid", train=tr, test=te, dtype=d, device=a.device,
