@@ -38,6 +38,7 @@ nodes' position estimates to the true positions (training episodes with truth).
 
 from __future__ import annotations
 
+import abc
 import copy
 import logging
 import math
@@ -288,7 +289,7 @@ class DifferentiableJacobian(MotionModel):
         return self.linearize(x, ctx)[1]
 
 
-class MotionParameters(nn.Module):
+class MotionParameters(nn.Module, abc.ABC):
     """The learnable numbers of one kind of motion model (``learner.learn: [model]``) and the differentiable
     model they give for a pass (:meth:`build`) or, detached, for tracking (:meth:`frozen`).
     ``q_block``: the learned agent block of ``Q`` replacing the model's own noise, or ``None``."""
@@ -297,14 +298,17 @@ class MotionParameters(nn.Module):
     #: whether ``learn: [q]`` applies (False: the model's noise is its own, e.g. a GP's predictive variance)
     takes_q: ClassVar[bool] = True
 
+    @abc.abstractmethod
     def build(self, q_block: Tensor | None) -> MotionModel:
-        raise NotImplementedError
+        """The differentiable model of one pass (its numbers in the graph)."""
 
+    @abc.abstractmethod
     def frozen(self, q_block: Tensor | None) -> MotionModel:
-        raise NotImplementedError
+        """The learned model, detached, for tracking."""
 
+    @abc.abstractmethod
     def summary(self) -> dict[str, Any]:
-        raise NotImplementedError
+        """The learned numbers as plain Python values."""
 
 
 class LinearParameters(MotionParameters):
