@@ -35,6 +35,15 @@ Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
              and the GP's own parameters too) against the EKF's forward pass on the same episodes.
   dtype      float32 vs float64 on the same seeds (time and accuracy of the Yu study).
   studies    wall time of the other studies' default runs (``dslearn-run ...`` subprocesses).
+  matrix     the cost of matrix cells (``task=matrix``), each in its own process, and of their parts: the
+             scenario draw, the offline fit (or its load from the offline-fit cache), online learning on the
+             training episodes, estimation on the test episodes, and the cell's peak resident memory.
+             Settings as ``key=value`` after the workload: ``methods=[a,b]`` (conf/method presets),
+             ``scenarios=[c,d]`` (conf/scenario), ``train=10 test=10`` (episodes per cell, as
+             ``experiment=matrix``), ``seed=0``, ``cache=fresh|off|user`` (the offline-fit cache: ``fresh``,
+             the default, one new folder shared by the workload's cells, as a sweep's workers share theirs;
+             ``off``; ``user``: ``$DSLEARN_CACHE_DIR`` as it is). Cells run one after another, methods
+             in the order given (so the first preset fitting a model pays the fit).
 
 Outputs in ``--out`` (default: a new folder ``bench-results/<date>_<time>`` in the current
 directory, so the committed ``benchmarks/`` tables are only rewritten when asked for with
@@ -61,7 +70,7 @@ import torch
 
 from dslearn.io import atomic_write_csv, atomic_write_text
 
-ALL = ("speed", "reference", "protocol", "gp", "fantasy", "network", "filters", "dtype", "studies")
+ALL = ("speed", "reference", "protocol", "gp", "fantasy", "network", "filters", "dtype", "studies", "matrix")
 
 #: the previous release's figures on the project's 2-core machine (AMD EPYC, torch 2.13 CPU), the
 #: denominators of the ``speed`` workload's ratios: one GP consensus configuration (gp / hybrid
@@ -467,6 +476,122 @@ def item_backprop(nodes: int, episodes: int = 8, steps: int = 40, epochs: int = 
                  reference_note="reference: the EKF's forward pass on the same episodes, no gradients (ratio epoch / forward)")]
 
 
+#: the ``matrix`` workload's settings (``dslearn-bench matrix key=value ...``) and their defaults: a representative
+#: few cells (the LSTM, the online GP and LIN with hybrid consensus on Liu's 200-sensor field and Yu's 10 nodes),
+#: with the episodes of ``experiment=matrix``
+MATRIX_DEFAULTS = {"methods": ["ekf_lstm_hybrid", "ekf_gp_hybrid", "ekf_lin_hybrid"],
+                   "scenarios": ["liu_s1", "yu_two_agents"], "train": 10, "test": 10, "seed": 0, "cache": "fresh"}
+MATRIX_CACHE = ("fresh", "off", "user")
+#: the parts of a cell the ``matrix`` workload times (seconds columns of its rows)
+MATRIX_PARTS = ("draw_s", "offline_fit_s", "online_learn_s", "estimate_s")
+
+
+def _options(dirname: str) -> list[str]:
+    from dslearn.conf_paths import CONF_DIR
+
+    return sorted(p.stem for p in (Path(CONF_DIR) / dirname).glob("*.yaml"))
+
+
+def matrix_settings(tokens: list[str]) -> dict:
+    """The ``matrix`` workload's settings from ``key=value`` tokens (:data:`MATRIX_DEFAULTS` for the others);
+    lists as ``[a,b]`` or ``a,b``. ConfigError naming ``matrix.<key>`` and the allowed values."""
+    from dslearn.errors import ConfigError
+
+    out = {k: (list(v) if isinstance(v, list) else v) for k, v in MATRIX_DEFAULTS.items()}
+    for tok in tokens:
+        key, _, val = tok.partition("=")
+        key = key.strip()
+        if key not in MATRIX_DEFAULTS:
+            raise ConfigError(f"matrix.{key}: unknown setting; allowed: {', '.join(MATRIX_DEFAULTS)}")
+        if key in ("methods", "scenarios"):
+            names = [v.strip() for v in val.strip().strip("[]").split(",") if v.strip()]
+            allowed = _options("method" if key == "methods" else "scenario")
+            bad = [n for n in names if n not in allowed]
+            if not names or bad:
+                raise ConfigError(f"matrix.{key}={val!r}: {'unknown ' + ', '.join(bad) if bad else 'empty'}; "
+                                  f"allowed: {', '.join(allowed)}")
+            out[key] = names
+        elif key == "cache":
+            if val not in MATRIX_CACHE:
+                raise ConfigError(f"matrix.cache={val!r}: allowed: {', '.join(MATRIX_CACHE)}")
+            out[key] = val
+        else:
+            lo = 1 if key == "test" else 0
+            try:
+                n = int(val)
+            except ValueError:
+                n = None
+            if n is None or n < lo:
+                raise ConfigError(f"matrix.{key}={val!r} must be an integer >= {lo}")
+            out[key] = n
+    return out
+
+
+def item_matrix(method: str, scenario: str, train: int = 10, test: int = 10, seed: int = 0,
+                cache_dir: str | None = None, overrides: tuple = ()) -> list[dict]:
+    """One matrix cell (``task=matrix method=<method> scenario=<scenario>``) as ``dslearn-run`` runs it, in this
+    process, with the wall time of its parts: ``build_s`` (composition: the scenario, its network, the method's
+    parts), ``draw_s`` (the training and test episodes), ``offline_fit_s`` (the motion model's offline fit, or its
+    load from the offline-fit cache: ``fit_cache`` says which), ``online_learn_s`` (Algorithm 1 on the training
+    episodes), ``estimate_s`` (tracking the test episodes), ``cell_s`` (the cell's ``runtime_s``: learning and
+    estimation; for an engine other than the distributed filter only that total), ``peak_mb`` (the process's peak
+    resident memory, ``base_mb`` of it before the cell). ``cache_dir``: ``$DSLEARN_CACHE_DIR`` for the cell;
+    ``overrides``: more of the cell's settings (``model.epochs=2``)."""
+    import dslearn.studies.matrix as cell_mod
+    from dslearn import api
+    from dslearn.diagnostics import Diagnostics
+    from dslearn.learning.online import OnlineLearner
+    from dslearn.methods.distributed import DistributedFilter
+
+    env = os.environ.get("DSLEARN_CACHE_DIR")
+    if cache_dir is not None:
+        os.environ["DSLEARN_CACHE_DIR"] = cache_dir
+    base = _peak_mb()
+    parts = dict.fromkeys(MATRIX_PARTS, 0.0)
+
+    def timed(fn, key):
+        def wrapper(*args, **kwargs):
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                parts[key] += time.perf_counter() - t
+        return wrapper
+
+    saved = (cell_mod.sample_split, OnlineLearner.run, OnlineLearner.estimate)
+    cell_mod.sample_split = timed(saved[0], "draw_s")
+    OnlineLearner.run, OnlineLearner.estimate = timed(saved[1], "online_learn_s"), timed(saved[2], "estimate_s")
+    try:
+        t0 = time.perf_counter()
+        cfg = _compose(["task=matrix", f"method={method}", f"scenario={scenario}", f"task.train_episodes={int(train)}",
+                        f"task.test_episodes={int(test)}", f"seed={int(seed)}", *overrides])
+        study = api.build_study(cfg)
+        build = time.perf_counter() - t0
+        model = getattr(study.method, "model", None)
+        if getattr(model, "learns_offline", False):  # the fit itself (the cache's load, if any, is in diag)
+            model.fit_offline = timed(model.fit_offline, "offline_fit_s")
+        with Diagnostics() as diag:
+            df = study.run(diagnostics=diag)
+    finally:
+        cell_mod.sample_split, OnlineLearner.run, OnlineLearner.estimate = saved
+        if env is None:
+            os.environ.pop("DSLEARN_CACHE_DIR", None)
+        else:
+            os.environ["DSLEARN_CACHE_DIR"] = env
+    cell = float(df.loc[df.metric == "runtime_s", "value"].iloc[0])
+    counts, fitted = diag.counts, parts["offline_fit_s"] > 0
+    parts["offline_fit_s"] = float(diag.timings.get("offline_fit_s", parts["offline_fit_s"]))
+    fit = ("loaded" if counts.get("offline_fit_cache_hits") else "fitted, stored" if counts.get("offline_fit_cache_stored")
+           else "fitted" if fitted else "")
+    rmse = df[(df.metric == "rmse") & (df.node_kind == "sensor")]["value"]
+    split = isinstance(study.method, DistributedFilter)  # the distributed filter: its parts are timed
+    return [dict(workload="matrix", item=f"{method} on {scenario}, {train}+{test} ep, seed {seed}", method=method,
+                 scenario=scenario, train=int(train), test=int(test), seed=int(seed), build_s=build,
+                 **{k: (v if split or k == "draw_s" else float("nan")) for k, v in parts.items()},
+                 cell_s=cell, wall_s=build + parts["draw_s"] + cell, fit_cache=fit,
+                 rmse=float(rmse.mean()) if len(rmse) else float("nan"), base_mb=base, peak_mb=_peak_mb())]
+
+
 def item_study(args: list[str], label: str) -> list[dict]:
     rc, wall, rss = _timed_cli(args, "hydra.run.dir")
     return [dict(workload="studies", item=f"dslearn-run {' '.join(args)}" + ("" if rc == 0 else f" (FAILED rc={rc})"), wall_s=wall,
@@ -603,6 +728,13 @@ def plan(workloads, quick: bool, a) -> list:
         tr, te = (a.train, a.test) if not quick else (50, 50)
         steps.append(("parallel", [("item_protocol", dict(model=m, fusion=f, train=tr, test=te, device=a.device))
                                    for m in sorted(models, key=lambda m: not m.startswith("gp")) for f in fusions]))
+    if "matrix" in workloads:  # cells one after another, methods in the order given (the first fit pays)
+        m = getattr(a, "matrix", None) or matrix_settings([])
+        cache = {"off": "off", "user": None}.get(m["cache"], getattr(a, "matrix_cache_dir", None))
+        for sc in m["scenarios"]:
+            for meth in m["methods"]:
+                steps.append(("item_matrix", dict(method=meth, scenario=sc, train=m["train"], test=m["test"],
+                                                  seed=m["seed"], cache_dir=cache)))
     if "studies" in workloads:
         for args, label in ((["experiment=jiang_fg"], "default run"), (["experiment=braga_tbn"], "default run"),
                             (["task=liu_dgpt"], "default run")):
@@ -659,6 +791,7 @@ EPILOG = """examples:
   dslearn-bench --quick                      the reduced suite (a few minutes): figures into bench-results/<date_time>/
   dslearn-bench speed                        the speed targets only
   dslearn-bench reference --ref-models lin,gp --ref-fusions hybrid
+  dslearn-bench matrix methods=[ekf_lstm_hybrid,ukf_lstm_hybrid] scenarios=[liu_s1] train=10 test=10
   dslearn-bench --merge bench-results/a bench-results/b --out bench-results/all
 
 exit codes: 0 done, 1 a reference disagrees or an item failed, 2 bad arguments."""
@@ -667,7 +800,8 @@ exit codes: 0 done, 1 a reference disagrees or an item failed, 2 bad arguments."
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(prog="dslearn-bench", description=plain_text(__doc__), epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("workloads", nargs="*", help=f"any of {', '.join(ALL)} (default: all)")
+    p.add_argument("workloads", nargs="*", help=f"any of {', '.join(ALL)} (default: all); the matrix workload's "
+                                                f"settings as key=value: {', '.join(MATRIX_DEFAULTS)}")
     p.add_argument("--quick", action="store_true", help="reduced sizes: a few minutes")
     p.add_argument("--models", default="lin,sfm,gp_increment",
                    help="protocol / dtype workloads: motion models, comma-separated (default: %(default)s)")
@@ -692,10 +826,24 @@ def main(argv=None) -> None:
     print(f"dslearn-bench: writing to {a.out}", flush=True)
     if a.merge:
         return merge(a.merge, a.out)
-    workloads = a.workloads or [w for w in ALL if not (a.quick and w in ("studies", "fantasy"))]
+    from dslearn.errors import ConfigError
+
+    settings = [w for w in a.workloads if "=" in w]
+    workloads = [w for w in a.workloads if "=" not in w]
+    workloads = workloads or [w for w in ALL if not (a.quick and w in ("studies", "fantasy", "matrix"))]
     bad = [w for w in workloads if w not in ALL]
     if bad:
         p.error(f"unknown workload(s) {bad}; choose from {', '.join(ALL)}")
+    if settings and "matrix" not in workloads:
+        p.error(f"{' '.join(settings)}: key=value settings belong to the matrix workload (dslearn-bench matrix ...)")
+    try:
+        a.matrix = matrix_settings(settings)
+    except ConfigError as e:
+        p.error(str(e))
+    fresh = None
+    if "matrix" in workloads and a.matrix["cache"] == "fresh":  # one new offline-fit cache for the workload's cells
+        fresh = tempfile.TemporaryDirectory(prefix="dslearn-bench-fit-cache-")
+        a.matrix_cache_dir = fresh.name
     torch.set_num_threads(a.threads)
     info = machine_info()
     print("machine: " + ", ".join(f"{k}={v}" for k, v in info.items()), flush=True)
@@ -713,6 +861,8 @@ def main(argv=None) -> None:
         else:
             rows += run_item(name, a.threads, **kw)
     total = time.perf_counter() - t_all
+    if fresh is not None:
+        fresh.cleanup()
     info["loadavg_after"] = " ".join(f"{v:.2f}" for v in os.getloadavg())
     info["suite"] = "quick" if a.quick else "full"
     info["total_s"] = round(total, 1)
@@ -741,7 +891,8 @@ def write_outputs(df: pd.DataFrame, out: Path) -> str:
     if len(ref) and "reference_s" in ref:
         extra.append(f"reduced protocol ({len(ref)} runs): fast {ref.wall_s.sum():.1f}s, reference {ref.reference_s.sum():.1f}s, "
                      f"ratio {ref.reference_s.sum() / ref.wall_s.sum():.1f}x (same process, same protocol)")
-    cols = [c for c in ("workload", "item", "n", "nodes", "wall_s", "ms_per_step", "ms_per_node_step", "reference_s",
+    cols = [c for c in ("workload", "item", "n", "nodes", "wall_s", "build_s", *MATRIX_PARTS, "cell_s", "fit_cache",
+                        "rmse", "base_mb", "ms_per_step", "ms_per_node_step", "reference_s",
                         "reference_ms_per_step", "ratio",
                         "max_abs_diff", "max_diff", "track_err", "pred_err", "peak_mb", "cuda_peak_mb", "reference_note") if c in df]
     show = df[cols].copy()

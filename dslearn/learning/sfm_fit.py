@@ -184,5 +184,20 @@ class FittedSocialForce(SocialForce):
         self.fit_info = {**params, "fit_loss": loss}
         return self
 
+    # the offline-fit cache (dslearn.learning.fit_cache)
+    def fit_cache_settings(self) -> dict:
+        """What besides the data and ``dt`` changes :meth:`fit_offline`: the agents, the fit's settings, the noise."""
+        return {"num_agents": self.num_agents, **self.fit_settings, "noise_std": self.noise_std,
+                "softening": self.softening}
+
+    def fitted_state(self) -> dict:
+        return {"fit_info": dict(self.fit_info)}
+
+    def load_fitted_state(self, state: dict) -> "FittedSocialForce":
+        info = dict(state["fit_info"])
+        self.set_parameters(float(info["tau"]), float(info["alpha"]), float(info["beta"]))
+        self.fit_info = info
+        return self
+
     def begin_episodes(self, states: Tensor) -> None:
         self.set_desired(desired_velocity(states, self.fit_settings["desired_steps"]))

@@ -19,6 +19,7 @@ from dslearn.fusion.strategies import Fusion
 from dslearn.learning.learners import NoLearning, OfflineLearning, OnlineLearning, refuse
 from dslearn.learning.backprop import (SUPPORTED_MODELS, BackpropLearning, BackpropParameters, fit, motion_misfit,
                                        motion_parameters, takes_q)
+from dslearn.learning.fit_cache import fit_offline_cached
 from dslearn.learning.online import OnlineLearner
 from dslearn.models.observation import LinearPositionObservation
 from dslearn.methods.base import require
@@ -101,8 +102,8 @@ class DistributedFilter:
         """Learn the filter's numbers on the training episodes (:mod:`dslearn.learning.backprop`); the learned parts.
         The motion model first learns as it would alone: an offline model (the LSTM) fits offline, a GP gathers
         its data sets online (Algorithm 1, ``learner``); then its parameters learn through the filter."""
-        if self.model.learns_offline:
-            self.model.fit_offline(train.states, ctx.dt, seed=seed)
+        if self.model.learns_offline:  # one fit per model, training set and seed, shared (the offline-fit cache)
+            fit_offline_cached(self.model, train.states, ctx.dt, seed)
         if self.model.learnable:
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
         a = self.model.state_dim // AGENT_DIM
@@ -163,8 +164,8 @@ class DistributedFilter:
         if kind == "backprop":
             model, obs, fusion = self._backprop(scenario, network, train, ctx, seed, learner)
             learner = online(model, obs, fusion)
-        if kind == "offline":  # supervised: learns from the training episodes' true tracks
-            model.fit_offline(train.states, ctx.dt, seed=seed)
+        if kind == "offline":  # supervised: learns from the training episodes' true tracks (once: the fit cache)
+            fit_offline_cached(model, train.states, ctx.dt, seed)
         if kind in ("online", "offline") and learner.learnable:  # Algorithm 1 (offline: a learning observation model)
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())  # no evaluation at checkpoints
         res = learner.estimate(test)

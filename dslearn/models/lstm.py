@@ -294,6 +294,35 @@ class SocialLSTM(MotionModel):
         self.eval()
         return self
 
+    # the offline-fit cache (dslearn.learning.fit_cache) ----------------------------------------
+    def fit_cache_settings(self) -> dict:
+        """Everything besides the data, ``dt`` and the seed that changes :meth:`fit_offline`'s result: the
+        network's hyperparameters and agents, the offline settings, the noise, the parameters' dtype and device."""
+        return {"num_agents": self.num_agents, **self.hparams(), "noise_std": self.noise_std,
+                "offline": sorted(self.offline.items()), "dtype": str(self.param_dtype),
+                "device": self.param_device.type}
+
+    def fitted_state(self) -> dict:
+        """What :meth:`fit_offline` produced, as tensors and plain values (:meth:`load_fitted_state` restores it)."""
+        curve = self.training_curve
+        return {"state_dict": {k: v.detach().cpu().clone() for k, v in self.state_dict().items()},
+                "process_cov": self.process_cov.detach().cpu().clone(), "fit_info": dict(self.fit_info),
+                "curve": {str(c): curve[c].tolist() for c in curve.columns}, "curve_attrs": dict(curve.attrs)}
+
+    def load_fitted_state(self, state: dict) -> "SocialLSTM":
+        """The model as :meth:`fit_offline` left it, from :meth:`fitted_state` (bit for bit)."""
+        self.load_state_dict(state["state_dict"])  # strict: names and shapes must match
+        cov = state["process_cov"]
+        if tuple(cov.shape) != tuple(self.process_cov.shape):
+            raise ValueError(f"process_cov {tuple(cov.shape)} != {tuple(self.process_cov.shape)}")
+        self.process_cov = cov.to(self.process_cov)
+        self.fit_info = dict(state["fit_info"])
+        curve = pd.DataFrame(state["curve"])
+        curve.attrs.update(state["curve_attrs"])
+        self.training_curve = curve
+        self.eval()
+        return self
+
     @torch.no_grad()
     def one_step_residuals(self, trajectories: Tensor) -> Tensor:
         """``x^{t+1} - f(x^t)`` per agent over ``(B, K+1, 4A)`` true states: ``(B K A, 4)``."""
