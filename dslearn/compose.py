@@ -114,7 +114,30 @@ def build_motion_model(node: Any, scenario, network, dtype, device):
 
 
 def build_observation(node: Any, network, dtype, device):
-    return build(node, "observation", num_nodes=network.num_nodes, dtype=dtype, device=device)
+    """The observation model of ``node`` for the sensors of ``network``: its ``noise_std``, where the option leaves
+    it null (the ``conf/observation`` default) or does not give it, is those sensors' own noise
+    (``network.meas_std``: the scenario's sensors where it brings its own); a number is kept (a deliberate
+    mismatch between the model and the sensors)."""
+    return build(sensor_noise(node, network), "observation", num_nodes=network.num_nodes, dtype=dtype, device=device)
+
+
+def sensor_noise(node: Any, network) -> Any:
+    """``node`` (an observation option) as a plain dict, its null or missing ``noise_std`` set to ``network.meas_std``
+    where its target takes a ``noise_std``."""
+    if node is None:
+        return node
+    spec = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node)
+    if spec.get("noise_std") is not None:
+        return spec
+    from hydra.utils import get_object
+
+    try:
+        takes = "noise_std" in _target_params(get_object(str(spec.get("_target_"))))
+    except Exception:  # noqa: BLE001 - a target that cannot be imported: build() names it
+        return spec
+    if takes:
+        spec["noise_std"] = float(network.meas_std)
+    return spec
 
 
 def build_fusion(node: Any, network, prefix: str = "consensus"):

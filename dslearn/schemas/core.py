@@ -184,7 +184,7 @@ class ModelSchema(PartSchema):
 @dataclass
 class ObservationSchema(PartSchema):
     name: str = "linear"
-    noise_std: float = 0.2
+    noise_std: Optional[float] = None  # null: the sensors' own noise (the run's network's meas_std)
     outputscale: Optional[float] = None
     lengthscale: Optional[float] = None
     mean: Optional[str] = None
@@ -629,7 +629,8 @@ def validate_core(cfg: DictConfig) -> None:
                               "network's CM-fused estimates are the real-data study's (task=ethucy_tracking)")
     # observation
     check_choice("observation.name", ob.name, ("linear", "gp"))
-    check_positive("observation.noise_std", ob.noise_std)
+    if ob.noise_std is not None:  # null: the sensors' own (dslearn.compose.build_observation)
+        check_positive("observation.noise_std", ob.noise_std)
     for k in ("outputscale", "lengthscale"):
         if ob[k] is not None:
             check_positive(f"observation.{k}", ob[k])

@@ -36,8 +36,6 @@ GP_INPUT_TARGETS = (GP_TARGET, GP_CV_TARGET)
 #: names of ``task.models`` kept from before the entries were ``conf/model`` options: entry ->
 #: (the option, the label of its rows); option None = the root ``model`` group, labelled by its name
 ALIASES = {"gp": (None, None), "sfm": ("sfm_fit", "sfm")}
-#: the observation group's default noise: the root network's sensors (here: the study's own network)
-NETWORK_NOISE = "${network.meas_std}"
 FUSIONS = ("hybrid", "cm", "ci", "ce", "individual")
 
 
@@ -221,18 +219,13 @@ def models_slot(cfg: DictConfig, slots) -> list[ModelEntry]:
 
 def observation_slot(cfg: DictConfig, slots):
     """``ethucy_tracking_observation``: ``make(network)``, a fresh sensor model of the root ``observation``
-    group for ``network``; its noise, where the option leaves it at the root network's
-    (``${network.meas_std}``), is ``network``'s sensors' (the study's ``task.network.meas_std``)."""
-    raw = OmegaConf.to_container(cfg.observation, resolve=False)
+    group for ``network``; its noise, where the option leaves it null (the sensors' own), is ``network``'s
+    sensors' (the study's ``task.network.meas_std``: :func:`dslearn.compose.build_observation`)."""
     spec = OmegaConf.to_container(cfg.observation, resolve=True)
-    at_network = raw.get("noise_std") == NETWORK_NOISE
     dtype, dev = slots["dtype"], slots["device"]
 
     def make(network):
-        node = copy.deepcopy(spec)
-        if at_network:
-            node["noise_std"] = float(network.meas_std)
-        return build_observation(node, network, dtype, dev)
+        return build_observation(copy.deepcopy(spec), network, dtype, dev)
 
     return make
 

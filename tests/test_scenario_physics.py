@@ -1,0 +1,222 @@
+"""A scenario's physics reach every method: a matrix cell's method is built with the measurement noise, the time
+step, the sensors and the communication graph of the scenario it runs on (the scenario's own network where it
+brings one, else the run's ``network`` part), never with a root-group default; also when the scenario's noise or
+step is overridden. One preset per method family on every matrix scenario it fits.
+
+What each family is checked on (its parts, then what it hands its engine when it estimates, caught by a spy that
+stops the run there):
+
+* the distributed filter (EKF/UKF with LIN, the social force, the GP, the LSTM): the observation model's ``R`` is
+  ``meas_std^2 I``; the learner gets the cell's sensors and the scenario's step (``ctx.dt``); the LSTM is built for
+  that step; the consensus weights are nonzero exactly on the sensors' graph;
+* Liu's DGPT: its tracker gets the scenario's sensors (one expert each) and step;
+* Jiang's FG-EKF: its tracker gets the scenario's sensors and their noise ``sigma_y``;
+* Braga's RBPF: its filters step with the scenario's ``T``, over the scenario's map, and the statistics consensus
+  weights are nonzero exactly on the formation's graph.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import pytest
+import torch
+
+from dslearn import api
+from dslearn.compose import _Slots, build_network
+from dslearn.data.ethucy import data_available
+from dslearn.episodes import Measurements
+from dslearn.errors import ConfigError
+from dslearn.schemas.matrix import _MetaSlots
+
+#: what every matrix scenario declares, by hand from conf/scenario/*.yaml and conf/network/yu.yaml:
+#: (sensors' noise sigma, time step [s], nodes, sensing nodes)
+PHYSICS = {
+    "yu_two_agents": (0.2, 0.25, 10, 4),  # no sensors of its own: the network part (conf/network/yu.yaml)
+    "liu_s1": (2.0, 1.0, 200, 200),
+    "liu_s2": (2.0, 1.0, 200, 200),
+    "liu_s3": (2.0, 1.0, 200, 200),
+    "corridor": (0.2, 0.4, 4, 4),
+    "eth_zara1": (0.2, 0.4, 4, 4),
+    "jiang": (5.0, 1.0, 3, 3),  # sigma_y of one squared-range sample [m^2]
+    "braga": (4.0, 0.05, 4, 4),  # the altimeter's largest true mode (the RBPF learns the noise itself)
+}
+POSITION = ["yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "corridor"] + (["eth_zara1"] if data_available() else [])
+#: one preset per method family, on every scenario it fits
+CELLS = ([(m, s) for m in ("ekf_lin_hybrid", "ekf_gp_hybrid", "ekf_lstm_hybrid", "dgpt_rbcm") for s in POSITION]
+         + [("ukf_sfm_hybrid", "yu_two_agents"), ("fg_ekf", "jiang"), ("rbpf_em", "braga")])
+#: overridden physics: (method, scenario, override, noise, dt) the cell must use instead of the scenario's file
+OVERRIDDEN = [
+    ("ekf_lin_hybrid", "liu_s1", "scenario.meas_std=0.7", 0.7, 1.0),
+    ("ekf_gp_hybrid", "liu_s2", "scenario.meas_std=0.7", 0.7, 1.0),
+    ("ekf_lstm_hybrid", "liu_s3", "scenario.dt=0.5", 2.0, 0.5),
+    ("dgpt_rbcm", "liu_s1", "scenario.dt=0.5", 2.0, 0.5),
+    ("ekf_lin_hybrid", "corridor", "scenario.network.meas_std=0.5", 0.5, 0.4),
+    ("ekf_lstm_hybrid", "corridor", "scenario.network.meas_std=0.5", 0.5, 0.4),
+    ("ekf_lin_hybrid", "yu_two_agents", "network.meas_std=0.35", 0.35, 0.25),  # its sensors: the network part
+    ("ukf_sfm_hybrid", "yu_two_agents", "scenario.dt=0.5", 0.2, 0.5),
+    ("fg_ekf", "jiang", "scenario.sigma_y=3.0", 3.0, 1.0),
+    ("rbpf_em", "braga", "scenario.dt=0.1", 4.0, 0.1),
+]
+
+
+class Caught(Exception):
+    """Raised by a spy with what the method handed its engine."""
+
+    def __init__(self, **seen):
+        super().__init__("caught")
+        self.seen = seen
+
+
+@functools.lru_cache(maxsize=None)
+def _cell(method: str, scenario: str, *extra: str):
+    """The cell's configuration (validated: the up-front check builds it too) and its parts on the meta device."""
+    cfg = api.compose("task=matrix", f"method={method}", f"scenario={scenario}", *extra)
+    slots = _MetaSlots(cfg)
+    return cfg, slots["scenario"], slots["scenario_network"], slots["method"]
+
+
+def _zeros(scenario, network, dz: int = 2) -> Measurements:
+    """Measurements of the scenario's shape (one episode, all zero, all visible): what the spies need."""
+    spec = scenario.spec
+    shape = (network.num_nodes, 1, spec.steps + 1, spec.num_agents)
+    return Measurements(torch.zeros(*shape, dz, dtype=torch.float64), torch.ones(shape, dtype=torch.bool))
+
+
+def _graph(weights: torch.Tensor) -> torch.Tensor:
+    """The communication graph a consensus weight matrix uses: its nonzero off-diagonal entries."""
+    w = torch.as_tensor(weights) != 0
+    return w & ~torch.eye(w.shape[0], dtype=torch.bool)
+
+
+def _check_sensors(cfg, scenario, net, noise: float, dt: float, nodes: int, sensing: int):
+    """The cell's sensors: the scenario's own (the very object) where it has one, else the network part's placement;
+    with the given noise, step and sizes."""
+    if scenario.network is not None:
+        assert net is scenario.network
+    else:
+        placed = build_network(cfg)
+        assert torch.equal(net.positions, placed.positions) and torch.equal(net.adjacency, placed.adjacency)
+    assert net.meas_std == pytest.approx(noise, rel=1e-12)
+    assert (net.num_nodes, net.num_sensors) == (nodes, sensing)
+    assert scenario.spec.dt == pytest.approx(dt, rel=1e-12) and scenario.ctx().dt == pytest.approx(dt, rel=1e-12)
+
+
+def _check_method(monkeypatch, scenario, net, method, noise: float, dt: float):
+    """What the built method uses, family by family (see the module's docstring)."""
+    from dslearn.methods import dgpt as dgpt_mod, distributed as dist_mod, rbpf as rbpf_mod
+    from dslearn.methods.dgpt import DGPTMethod
+    from dslearn.methods.distributed import DistributedFilter
+    from dslearn.methods.factor_graph import FactorGraphMethod
+    from dslearn.methods.rbpf import RBPFMethod
+
+    if isinstance(method, DistributedFilter):
+        r = method.observation.noise_cov(torch.zeros(1, 4, dtype=torch.float64))[0]
+        assert torch.allclose(r, noise**2 * torch.eye(2, dtype=torch.float64), rtol=1e-12, atol=0.0)
+        assert torch.equal(_graph(method.fusion.weights), net.adjacency)
+        assert method.fusion.weights.shape == (net.num_nodes, net.num_nodes)
+        if hasattr(method.model, "dt"):  # the LSTM: built for the scenario's step
+            assert method.model.dt == pytest.approx(dt, rel=1e-12)
+
+        def spy(network, model, obs, fusion, ctx, **kw):
+            raise Caught(network=network, obs=obs, ctx=ctx)
+
+        monkeypatch.setattr(dist_mod, "OnlineLearner", spy)
+        with pytest.raises(Caught) as got:
+            method.estimate(scenario, net, None, _zeros(scenario, net), 0)
+        seen = got.value.seen
+        assert seen["network"] is net and seen["obs"] is method.observation
+        assert seen["ctx"].dt == pytest.approx(dt, rel=1e-12)
+    elif isinstance(method, DGPTMethod):
+        def spy(z, vis, window, **kw):
+            raise Caught(z=z, dt=kw["dt"])
+
+        monkeypatch.setattr(dgpt_mod, "track", spy)
+        with pytest.raises(Caught) as got:
+            method.estimate(scenario, net, None, _zeros(scenario, net), 0)
+        assert got.value.seen["z"].shape[1] == net.num_sensors  # one expert per sensor of the cell
+        assert got.value.seen["dt"] == pytest.approx(dt, rel=1e-12)
+    elif isinstance(method, FactorGraphMethod):
+        def spy(h, samples, sigma_y):
+            raise Caught(h=h, samples=samples, sigma_y=sigma_y)
+
+        monkeypatch.setattr(method, "track", spy)
+        with pytest.raises(Caught) as got:
+            method.estimate(scenario, net, None, _zeros(scenario, net, scenario.num_samples), 0)
+        seen = got.value.seen
+        assert seen["sigma_y"] == pytest.approx(noise, rel=1e-12)
+        assert torch.equal(seen["h"].sensors, scenario.sensors) and seen["samples"].shape[2] == net.num_sensors
+    elif isinstance(method, RBPFMethod):
+        assert torch.equal(_graph(method.fusion.weights), net.adjacency)
+
+        def spy(y, terrain, x0, strategies, weights, init, dyn, **kw):
+            raise Caught(terrain=terrain, dyn=dyn, weights=weights)
+
+        monkeypatch.setattr(rbpf_mod, "run_tbn", spy)
+        with pytest.raises(Caught) as got:
+            method.estimate(scenario, net, None, _zeros(scenario, net), 0)
+        seen = got.value.seen
+        assert seen["dyn"].F[0, 2].item() == pytest.approx(dt, rel=1e-12)  # x += T vx (Eq. 23)
+        assert seen["weights"] is method.fusion.weights
+        assert torch.equal(seen["terrain"].z, scenario.terrain.z.to(seen["terrain"].z))
+    else:  # a new family: extend this test
+        raise AssertionError(f"no physics contract for {type(method).__name__}")
+
+
+def test_the_cells_are_those_that_fit():
+    """Every (family, scenario) pair above fits (a cell the matrix runs); the others are refused."""
+    from dslearn.schemas.matrix import cell
+
+    for m, s in CELLS:
+        assert cell(_cell(m, s)[0]).reason is None, (m, s)
+    with pytest.raises(ConfigError, match="does not fit scenario"):
+        api.compose("task=matrix", "method=dgpt_rbcm", "scenario=jiang")
+
+
+@pytest.mark.parametrize("method,scenario", CELLS, ids=[f"{m}-{s}" for m, s in CELLS])
+def test_a_cell_uses_its_scenarios_physics(monkeypatch, method, scenario):
+    cfg, sc, net, m = _cell(method, scenario)
+    noise, dt, nodes, sensing = PHYSICS[scenario]
+    _check_sensors(cfg, sc, net, noise, dt, nodes, sensing)
+    _check_method(monkeypatch, sc, net, m, noise, dt)
+
+
+@pytest.mark.parametrize("method,scenario,override,noise,dt", OVERRIDDEN,
+                         ids=[f"{m}-{s}-{o}" for m, s, o, *_ in OVERRIDDEN])
+def test_an_overridden_scenario_reaches_the_method(monkeypatch, method, scenario, override, noise, dt):
+    """The scenario's noise or step set on the command line reaches the method as it reaches the simulated data."""
+    cfg, sc, net, m = _cell(method, scenario, override)
+    _, _, nodes, sensing = PHYSICS[scenario]
+    _check_sensors(cfg, sc, net, noise, dt, nodes, sensing)
+    _check_method(monkeypatch, sc, net, m, noise, dt)
+
+
+def test_a_learned_observation_gp_starts_at_the_sensors_noise():
+    """observation=gp (built for real): every node's GP noise variance starts at the cell's sensors' sigma^2."""
+    cfg = api.compose("task=matrix", "method=ekf_gp_hybrid", "observation=gp", "scenario=corridor",
+                      "scenario.network.meas_std=0.5")
+    method = _Slots(cfg)["method"]
+    assert torch.allclose(method.observation.gp.noise_var, torch.full((4,), 0.25, dtype=torch.float64),
+                          rtol=1e-12, atol=0.0)
+
+
+def test_an_explicit_observation_noise_is_a_deliberate_mismatch():
+    """observation.noise_std=x is kept whatever the sensors' noise (the data still have the scenario's)."""
+    _, sc, net, m = _cell("ekf_lin_hybrid", "liu_s1", "observation.noise_std=0.2")
+    assert net.meas_std == 2.0 and m.observation.noise_std == 0.2
+
+
+@pytest.mark.parametrize("task", ["task=yu", "task=matrix"])
+def test_a_negative_observation_noise_is_refused(task):
+    """null is the sensors' own noise; a number must be > 0, refused up front naming the key."""
+    method = ("method=ekf_lin_hybrid",) if task == "task=matrix" else ()
+    with pytest.raises(ConfigError, match=r"^observation\.noise_std=-1(\.0)? must be > 0"):
+        api.compose(task, *method, "observation.noise_std=-1")
+
+
+def test_the_yu_study_keeps_its_sensors_noise():
+    """task=yu (the root network part, 0.2 m): the observation model's noise is the network's, as before; an explicit
+    null is the same."""
+    for extra, want in (((), 0.2), (("network.meas_std=0.45",), 0.45), (("observation.noise_std=null",), 0.2),
+                        (("observation.noise_std=0.3",), 0.3)):
+        assert api.build_study(api.compose("task=yu", *extra)).observation.noise_std == want, extra
