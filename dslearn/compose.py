@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from dslearn.errors import ConfigError, check_choice
 from dslearn.types import DTYPES
@@ -329,12 +329,35 @@ def build_cell_parts(cfg: DictConfig, check_only: bool = False):
     return slots["scenario"], slots["scenario_network"], method
 
 
+def _draws(cfg: DictConfig, s: "_Slots"):
+    """``draw(seed) -> (scenario, its sensors, method)``: a matrix cell's objects as a run with ``seed`` builds them
+    (the configuration with ``seed`` replaced, so whatever interpolates ``${seed}`` follows it, e.g. Liu's sensor
+    field; the global torch generator seeded first, as :func:`build_study` does, so a method's initial values
+    follow it too). Each call builds anew: one draw at a time."""
+    import copy
+
+    dtype, dev = s["dtype"], s["device"]
+
+    def draw(seed: int):
+        c = copy.deepcopy(cfg)
+        OmegaConf.set_readonly(c, False)
+        with open_dict(c):
+            c.seed = int(seed)
+        torch.manual_seed(int(seed))
+        slots = _Slots(c)
+        slots._built.update(dtype=dtype, device=dev)
+        return slots["scenario"], slots["scenario_network"], slots["method"]
+
+    return draw
+
+
 SLOTS.update({
     "model_options": _model_options,
     "observation_factory": _observation_factory,
     "fusion_factory": _fusion_factory,
     "scenario_network": _scenario_network,
     "method": _method,
+    "draws": _draws,
 })
 
 

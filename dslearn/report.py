@@ -12,7 +12,9 @@ its numbers in ``figure_data.csv``), each study's own Markdown/CSV tables and PN
 written. Prints the Markdown, then which file to open and what was written.
 
 Display conventions (tables, console, figures): the sensor average is labelled
-``sensor average`` and set apart from the node rows; ``nees`` is shown as ``NEES/Dx``; metrics
+``sensor average`` and set apart from the node rows; ``nees`` is shown as ``state NEES/Dx`` (the NEES of the
+whole state, every target's position and velocity, over the state dimension Dx; the tracking figure and the
+matrix show the position NEES / 2A instead, and say so); metrics
 with a unit carry it in the header (:data:`METRIC_UNITS`). ``summary.csv`` keeps the machine
 names (node ``avg``, metric ``nees``).
 """
@@ -52,7 +54,13 @@ METRIC_UNITS: dict[str, str] = {
     "train_s": "s",
 }
 #: display names where the machine name would mislead
-METRIC_NAMES: dict[str, str] = {"nees": "NEES/Dx"}
+METRIC_NAMES: dict[str, str] = {"nees": "state NEES/Dx"}
+#: what each NEES is, where a table shows it (a consistent filter gives 1)
+NEES_NOTES: dict[str, str] = {
+    "nees": ("state NEES/Dx: the NEES of the whole state estimate (every target's position and velocity) over the "
+             "state dimension Dx, mean over the steps; 1 = consistent (tracking.png plots the position NEES / 2A "
+             "over time, with the 95 % band of a consistent filter)"),
+}
 #: display label of the ``avg`` node (the papers' "Average" row: the mean over sensing nodes)
 
 
@@ -68,7 +76,7 @@ def metric_unit(metric: str) -> str | None:
 
 
 def metric_label(metric: str) -> str:
-    """``track_err`` -> ``track_err [m]``, ``nees`` -> ``NEES/Dx``: the name shown in headers and axes."""
+    """``track_err`` -> ``track_err [m]``, ``nees`` -> ``state NEES/Dx``: the name shown in headers and axes."""
     m = str(metric)
     name = METRIC_NAMES.get(m, m)
     unit = metric_unit(m)
@@ -157,6 +165,7 @@ def console_table(summary: pd.DataFrame) -> str:
     lines = [head, fmt(header), "  ".join("-" * w for w in widths)] + [fmt(r) for r in rows]
     if avg:
         lines += ["  ".join("-" * w for w in widths), fmt(avg)]
+    lines += [NEES_NOTES[m] for m in metrics if m in NEES_NOTES]
     return "\n".join(lines)
 
 
@@ -414,16 +423,22 @@ FILE_NOTES = {
     "report.md": "this report (open it first)",
     "figure.png": "every metric against the swept keys; error bars ± 1 std over seeds or episodes",
     "figure_data.csv": "the numbers plotted in figure.png",
-    "summary.csv": "mean, std, n per key combination (machine names: node 'avg' = sensor average, 'nees' = NEES/Dx)",
+    "summary.csv": "mean, std, n per key combination (machine names: node 'avg' = sensor average, 'nees' = state NEES/Dx)",
     "summary_seeds.csv": "per-seed means, then mean ± std over seeds",
     "tables.md": "one generic table per metric (Markdown)",
     "tables.tex": "the same tables (LaTeX)",
     "yu_table1.csv": "Yu Table I shape: tracking error per fusion x node x model (also .md)",
     "yu_table1_rmse.csv": "tracking RMSE in the Table I layout (also .md)",
     "yu_table2.csv": "Yu Table II shape: prediction error per node x model (also .md)",
-    "yu_nees.csv": "NEES/Dx in the Table I layout (also .md)",
+    "yu_nees.csv": "state NEES/Dx (the whole state's NEES over its dimension) in the Table I layout (also .md)",
     "yu_fig2.png": "Yu Fig. 2 shape: tracking error against training episodes and L",
-    "tracking.png": "the sensor network, a test episode's true and estimated tracks, error and NEES over time",
+    "tracking.png": ("the sensor network, a test episode's true and estimated tracks, position error and position "
+                     "NEES / 2A over time with the 95 % band of a consistent filter"),
+    "matrix.md": "the matrix: RMSE ± 95 % half-interval (position NEES / 2A) per method and scenario, best bold, ties ≈",
+    "matrix.csv": "the matrix's numbers, one row per method x scenario: means, 95 % intervals, rank, tied, notes",
+    "leaderboard.md": "per scenario the methods best first, with the paired difference to the best (also .csv)",
+    "leaderboard.csv": "the leaderboard's numbers",
+    "matrix.png": "per scenario every method's RMSE with its 95 % interval, the best and the ties marked",
 }
 
 

@@ -879,6 +879,9 @@ def validate_job(cfg: DictConfig, lines=()) -> None:
 
     if lines and "task" in cfg and cfg.task is not None and cfg.task.get("name") is not None:
         check_overrides(cfg, override_keys(lines))
+        from dslearn.studies.matrix import check_method_chosen
+
+        check_method_chosen(cfg, [k for k, _ in override_keys(lines)])
     validate_config(cfg)
     device = cfg.get("device")
     if device is not None and str(device).startswith("cuda"):  # here, not in the run: no run folder for it

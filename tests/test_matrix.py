@@ -105,11 +105,12 @@ def test_cell_rows_by_hand():
     # the report's cell value: per episode the mean over the SENSING nodes, then the mean over episodes
     vals = rep.cell_values(df).iloc[0]
     rmse = sum(0.5 * math.sqrt(5) * (i + 1) * (b + 1) for i in (0, 1) for b in range(3)) / 6
-    assert vals["rmse"] == pytest.approx(rmse, rel=1e-12) and vals["episodes"] == 3
+    assert vals["rmse_mean"] == pytest.approx(rmse, rel=1e-12) and vals["n_units"] == 3 and vals["seeds"] == 1
     nees = sum(5 * (0.5 * (i + 1) * (b + 1)) ** 2 / 0.5 for i in (0, 1) for b in range(3)) / 6
-    assert vals["nees_pos"] == pytest.approx(nees, rel=1e-12)
+    assert vals["nees_pos_per_dim_mean"] == pytest.approx(nees, rel=1e-12)
     no_cov = _cell(FakeMethod(cov=False)).run()
-    assert "nees_pos" not in set(no_cov["metric"]) and math.isnan(rep.cell_values(no_cov)["nees_pos"].iloc[0])
+    assert "nees_pos" not in set(no_cov["metric"])
+    assert math.isnan(rep.cell_values(no_cov)["nees_pos_per_dim_mean"].iloc[0])
 
 
 def test_a_cell_that_does_not_fit_is_refused_before_any_work():
@@ -268,27 +269,31 @@ def test_report_table_on_a_synthetic_sweep(tmp_path):
 
     sweep = _synthetic(tmp_path)
     text = report(sweep)
-    tab = pd.read_csv(sweep / "matrix.csv", dtype=str, keep_default_na=False)
-    assert list(tab.columns) == ["method", "yu", "s1", "jiang"] and list(tab["method"]) == ["A", "B"]
-    cell = tab.set_index("method")
-    # A on yu: per episode the mean over the sensors (1.5, 4.0; the comm node left out), mean 2.75;
-    # NEES (1.0, 1.0) -> 1.00; 12.345 s -> 12.3 s (three significant digits everywhere)
-    assert cell.loc["A", "yu"] == "2.75 m (1.00) 12.3 s"
-    assert cell.loc["A", "s1"] == "0.00124 km 0.500 s"  # no NEES rows: no parentheses
-    assert cell.loc["A", "jiang"] == "n/a: A needs measurement position; scenario jiang has squared_range"
-    assert cell.loc["B", "yu"] == "4.00 m 100 s"
-    assert cell.loc["B", "s1"] == "failed" and cell.loc["B", "jiang"] == "incomplete"
-    assert "| A | 2.75 m (1.00) 12.3 s |" in (sweep / "matrix.md").read_text() and "| A | 2.75 m" in text
-    vals = pd.read_csv(sweep / "matrix_values.csv")
+    vals = pd.read_csv(sweep / "matrix.csv")
+    # rows and columns: the options of the sweep's combinations (method=a, scenario=yu, ...)
+    assert list(zip(vals["method"], vals["scenario"])) == [("a", "yu"), ("a", "s1"), ("a", "jiang"), ("b", "yu"),
+                                                           ("b", "s1"), ("b", "jiang")]
     assert list(vals["status"]) == ["ok", "ok", "skipped", "ok", "failed", "incomplete"]
-    assert vals.loc[0, "rmse"] == 2.75 and vals.loc[0, "nees_pos"] == 1.0 and vals.loc[1, "rmse"] == pytest.approx(0.001236, rel=1e-12)
+    # A on yu: per episode the mean over the sensors (1.5, 4.0; the comm node left out), mean 2.75, the
+    # t-interval 2.75 -/+ t_{0.975,1} * s / sqrt(2) with s = 2.5 / sqrt(2): half-width 12.706 * 1.25 = 15.9
+    half = 12.706204736174707 * 1.25
+    assert (vals.loc[0, "rmse_mean"], vals.loc[0, "rmse_lo"], vals.loc[0, "rmse_hi"]) == pytest.approx(
+        (2.75, 2.75 - half, 2.75 + half), rel=1e-12)
+    assert vals.loc[0, "nees_pos_per_dim_mean"] == 1.0 and vals.loc[0, "runtime_s"] == 12.345
+    assert vals.loc[1, "rmse_mean"] == pytest.approx(0.001236, rel=1e-12)
+    md = (sweep / "matrix.md").read_text()
+    # the best of yu bold (A: 2.75 < B: 4.00, paired differences 2.5, 0 -> interval [-14.4, 16.4]: tied)
+    assert "| a | **2.75 ± 15.9** (1.00) | **0.00124 ± 2.54e-05** | – [1] |" in md
+    assert "| b | ≈ 4.00 ± 0 | – [2] | – [3] |" in md and "| a | **2.75" in text
+    assert "[1] A needs measurement position; the scenario has squared_range" in md
+    assert "[2] the job failed" in md and "[3] the job has no complete result" in md
     rel = rep.relative_rmse(rep.matrix_values(pd.read_csv(sweep / "sweep_results.csv"), sweep))
-    assert rel.loc["B", "yu"] == pytest.approx(4.0 / 2.75) and rel.loc["A", "yu"] == 1.0
-    assert math.isnan(rel.loc["A", "jiang"]) and math.isnan(rel.loc["B", "s1"])
+    assert rel.loc["b", "yu"] == pytest.approx(4.0 / 2.75) and rel.loc["a", "yu"] == 1.0
+    assert math.isnan(rel.loc["a", "jiang"]) and math.isnan(rel.loc["b", "s1"])
     assert (sweep / "matrix.png").stat().st_size > 10_000
     # --out elsewhere: the n/a and failed cells still come from the sweep folder
     report(sweep / "sweep_results.csv", tmp_path / "elsewhere")
-    assert pd.read_csv(tmp_path / "elsewhere" / "matrix.csv", dtype=str).equals(tab)
+    assert pd.read_csv(tmp_path / "elsewhere" / "matrix.csv", dtype=str).equals(pd.read_csv(sweep / "matrix.csv", dtype=str))
 
 
 # ----------------------------------------------------------------------------------- a real sweep
@@ -313,20 +318,21 @@ def test_a_real_matrix_sweep_and_its_report(tmp_path):
     r = subprocess.run([str(BIN / "dslearn-report"), str(sweep)], cwd=tmp_path, env=env, capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
-    tab = pd.read_csv(sweep / "matrix.csv", dtype=str, keep_default_na=False).set_index("method")
-    vals = pd.read_csv(sweep / "matrix_values.csv").set_index(["method", "scenario"])
-    assert tab.loc["ekf sfm hybrid", "s1"].startswith("n/a: its parts cannot be built for scenario s1")
-    for job, (m, s) in enumerate([("ekf lin hybrid", "yu"), ("ekf lin hybrid", "s1"), ("ekf sfm hybrid", "yu")]):
+    vals = pd.read_csv(sweep / "matrix.csv").set_index(["method", "scenario"])
+    assert vals.loc[("ekf_sfm_hybrid", "liu_s1"), "status"] == "skipped"
+    note = int(vals.loc[("ekf_sfm_hybrid", "liu_s1"), "note"])
+    assert f"[{note}] model=sfm is the true social-force model" in (sweep / "matrix.md").read_text()
+    for job, (m, s) in enumerate([("ekf_lin_hybrid", "yu_two_agents"), ("ekf_lin_hybrid", "liu_s1"),
+                                  ("ekf_sfm_hybrid", "yu_two_agents")]):
         res = pd.read_csv(sweep / str(job) / "results.csv")  # the job's own rows, recomputed here
         sens = res[res["node_kind"] == "sensor"]
         rmse = sens[sens["metric"] == "rmse"].groupby("episode")["value"].mean().mean()
         nees = sens[sens["metric"] == "nees_pos"].groupby("episode")["value"].mean().mean()
         t = res.loc[res["metric"] == "runtime_s", "value"].iloc[0]
-        assert vals.loc[(m, s), "rmse"] == pytest.approx(rmse, rel=1e-12)
-        assert vals.loc[(m, s), "nees_pos"] == pytest.approx(nees, rel=1e-12)
+        assert vals.loc[(m, s), "rmse_mean"] == pytest.approx(rmse, rel=1e-12)
+        assert vals.loc[(m, s), "nees_pos_per_dim_mean"] == pytest.approx(nees, rel=1e-12)
         assert vals.loc[(m, s), "runtime_s"] == pytest.approx(t, rel=1e-12)
-        unit = res["units"].iloc[0]
-        assert tab.loc[m, s] == f"{rep.sig(rmse)} {unit} ({rep.sig(nees)}) {rep.sig(t)} s"
+        assert vals.loc[(m, s), "n_units"] == 2 and vals.loc[(m, s), "seeds"] == 1
 
 
 def test_a_cell_whose_model_learns_online(make_cfg):

@@ -24,7 +24,7 @@ from dslearn.report import (
 
 def test_units_and_labels():
     assert metric_label("track_err") == "track_err [m]" and metric_label("pred_err") == "pred_err [m]"
-    assert metric_label("nees") == "NEES/Dx" and metric_unit("nees") == "1"
+    assert metric_label("nees") == "state NEES/Dx" and metric_unit("nees") == "1"
     assert metric_label("ade") == "ade [m]" and metric_label("fde") == "fde [m]"
     assert metric_label("wall_time_s") == "wall_time_s [s]" and metric_label("lost_track_m") == "lost_track_m [m]"
     assert metric_label("gate_reject_frac") == "gate_reject_frac" and metric_unit("gate_reject_frac") == "1"
@@ -52,7 +52,9 @@ def test_console_table_sets_the_sensor_average_apart():
     text = console_table(summarize(_yu_like()))
     lines = text.splitlines()
     assert lines[0] == "study=s, model=gp, consensus=hybrid"
-    assert lines[1].split() == ["node", "track_err", "[m]", "NEES/Dx"]
+    assert lines[1].split() == ["node", "track_err", "[m]", "state", "NEES/Dx"]
+    assert lines[-1].startswith("state NEES/Dx: the NEES of the whole state") and "position NEES / 2A" in lines[-1]
+    lines = lines[:-1]
     body = [ln.split()[0] for ln in lines[3:]]
     assert body[:3] == ["sensor1", "sensor2", "comm1"]
     assert set(lines[-2].replace(" ", "")) == {"-"}  # a rule before the average row
@@ -106,7 +108,7 @@ def test_report_writes_figure_and_index(tmp_path):
     for f in ("summary.csv", "summary_seeds.csv", "tables.md", "tables.tex", "figure.png", "figure_data.csv"):
         assert f"- `{f}`: " in md and (rep / f).is_file(), f
     tables = (rep / "tables.md").read_text()
-    assert "### track_err [m]" in tables and "### NEES/Dx" in tables
+    assert "### track_err [m]" in tables and "### state NEES/Dx" in tables
     summary = pd.read_csv(rep / "summary.csv")
     assert "avg" in set(summary["node"])  # machine names stay in the CSV
     fig = pd.read_csv(rep / "figure_data.csv")
@@ -121,7 +123,7 @@ def test_yu_tables_label_the_average(tmp_path):
     tab = table_tracking(s)
     assert list(tab["node"]) == ["sensor1", "sensor2", AVG_LABEL]
     text = yu_report(_yu_like(), s, tmp_path)
-    assert "Tracking error [m]" in text and "NEES/Dx" in text and "| hybrid | sensor average |" in text
+    assert "Tracking error [m]" in text and "state NEES/Dx: the NEES of the whole state" in text and "| hybrid | sensor average |" in text
 
 
 def test_report_of_a_single_run_dir(make_cfg, tmp_path):

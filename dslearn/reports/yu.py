@@ -254,7 +254,9 @@ def yu_report(results: pd.DataFrame, summary: pd.DataFrame, out_dir: Path) -> st
         ("yu_table1", "Tracking error [m] (Table I shape; paper's formula, mean position error)", table_tracking(summary)),
         ("yu_table1_rmse", "Tracking RMSE [m]", table_tracking(summary, "track_rmse")),
         ("yu_table2", "Prediction error [m] from the true state at t=0 (Table II shape)", table_prediction(summary)),
-        ("yu_nees", "NEES/Dx, averaged over time (1 = consistent)", table_tracking(summary, "nees")),
+        ("yu_nees", "state NEES/Dx: the NEES of the whole state (every target's position and velocity) over the "
+                    "state dimension Dx, averaged over time (1 = consistent; tracking.png plots the position NEES / 2A "
+                    "with the 95 % band of a consistent filter)", table_tracking(summary, "nees")),
     ):
         if not tab.empty:
             parts.append(write_table(out_dir, name, title, tab))

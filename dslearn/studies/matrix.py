@@ -8,15 +8,25 @@ positions with the true ones (:func:`dslearn.metrics.positions.position_metrics`
 where the method has covariances, ``nees_pos``, per reporting node and test episode, plus ``runtime_s``.
 A method that does not fit the scenario is refused before any work (:meth:`Method.fits`).
 
+``task.seeds`` (default 1): the cell runs that many independent draws, with the seeds ``seed``, ``seed + 1``,
+..., each a new draw of the world and of the method: the scenario, its sensors and the method are rebuilt
+through the composition root with the run's seed replaced (the ``draws`` slot), so a draw redraws what the
+seed decides, Liu's sensor field (``scenario.seed: ${seed}``), the trajectories, a recorded scenario's pool
+order, the method's own randomness (initial weights); Yu's sensor placement is not redrawn (``network.seed`` is
+fixed across run seeds: the layout is part of the scenario, as in Yu et al.'s Fig. 1). One draw at a time: the
+peak memory is that of one draw. Every row carries its draw's ``seed``; with ``seeds: 1`` the rows are those of
+the run's seed alone, bit for bit.
+
 ``dslearn-run experiment=matrix`` sweeps every method preset over every scenario it fits;
 ``dslearn-report`` on the sweep folder writes the matrix (``matrix.md``, ``matrix.csv``, ``matrix.png``).
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
-from typing import Any, List
+from typing import Any, Callable, List, Optional
 
 import pandas as pd
 import torch
@@ -30,6 +40,7 @@ from dslearn.network import SensorNetwork
 from dslearn.settings import ranged
 from dslearn.sim.scenario import sample_split
 
+log = logging.getLogger(__name__)
 
 #: files a matrix sweep writes into its folder (the matrix sweeper): every combination of the sweep, its
 #: job number (empty where it does not fit), row (method label), column (scenario name), units and reason
@@ -51,7 +62,8 @@ class LeftOut:
 
 @dataclass
 class MatrixSettings:
-    """``task=matrix``: the episodes of a cell; ``left_out``: the cells a matrix sweep leaves out, with the reason
+    """``task=matrix``: the episodes of a cell and its number of independent draws (``seeds``: the run's seed and
+    the ``seeds - 1`` following ones); ``left_out``: the cells a matrix sweep leaves out, with the reason
     (:func:`dslearn.schemas.matrix.select_cells` records them in ``skipped_cells.csv`` like the cells that do not
     fit; a run of one cell, outside a sweep, runs it)."""
 
@@ -59,12 +71,19 @@ class MatrixSettings:
     name: str = "matrix"
     train_episodes: int = ranged(30, ge=0)
     test_episodes: int = ranged(20, ge=1)
+    seeds: int = ranged(1, ge=1)
     left_out: List[LeftOut] = field(default_factory=list)
+
+
+#: ``draw(seed) -> (scenario, its sensors, method)``: one draw of a cell, built for a run with that seed
+Draw = Callable[[int], "tuple[Scenario, SensorNetwork, Method]"]
 
 
 @dataclass
 class MatrixCell:
-    """A method on a scenario: train, estimate, compare with the truth."""
+    """A method on a scenario: train, estimate, compare with the truth; ``settings.seeds`` times, one draw per
+    seed. ``scenario``, ``scenario_network`` and ``method`` are the draw of ``seed``; ``draws`` builds the others
+    (the composition root's ``draws`` slot; needed only where ``seeds > 1``)."""
 
     settings: MatrixSettings
     scenario: Scenario
@@ -73,28 +92,80 @@ class MatrixCell:
     seed: int
     dtype: torch.dtype
     device: torch.device
+    draws: Optional[Draw] = None
+
+    def _draw(self, k: int):
+        """The ``k``-th draw: the cell's own objects for ``k = 0``, else a new build for seed ``seed + k``."""
+        if k == 0:
+            return self.scenario, self.scenario_network, self.method
+        return self.draws(self.seed + k)
 
     def run(self, diagnostics=None, progress: bool = False) -> pd.DataFrame:
-        spec, method = self.scenario.spec, self.method
+        st = self.settings
+        seeds = int(st.seeds)
+        if seeds > 1 and self.draws is None:
+            raise ConfigError(f"task.seeds={seeds}: this cell was built without the draws of the other seeds (the "
+                              f"composition root's 'draws' slot); use task.seeds=1 or dslearn.api.build_study")
+        if seeds > 1:
+            log.info("%s on %s: %d draws (seeds %d..%d), %d training + %d test episodes each, one draw at a time",
+                     self.method.label, self.scenario.spec.name, seeds, self.seed, self.seed + seeds - 1,
+                     st.train_episodes, st.test_episodes)
+        frames, total = [], 0.0
+        for k in range(seeds):
+            scenario, network, method = self._draw(k)
+            if k == 0 and seeds > 1:  # later draws replace it: let the first one's memory go with it
+                self.scenario = self.scenario_network = self.method = None
+            df, wall = self._run_one(scenario, network, method, self.seed + k)
+            del scenario, network, method
+            frames.append(df)
+            total += wall
+            if seeds > 1:
+                log.info("draw %d of %d (seed %d) done in %.1f s", k + 1, seeds, self.seed + k, wall)
+        if diagnostics is not None:
+            diagnostics.timings["method_s"] = round(total, 3)
+        return frames[0] if len(frames) == 1 else pd.concat(frames, ignore_index=True)
+
+    def _run_one(self, scenario: Scenario, network: SensorNetwork, method: Method, seed: int):
+        """The rows of one draw (every row with its ``seed``) and the method's wall time."""
+        spec = scenario.spec
         reason = method.fits(spec)
         if reason is not None:
             raise ConfigError(f"{method.label} does not fit scenario {spec.name}: {reason}")
         st = self.settings
-        test, train = sample_split(self.scenario, self.scenario_network, self.seed, st.test_episodes,
-                                   st.train_episodes, self.dtype, self.device)
+        test, train = sample_split(scenario, network, seed, st.test_episodes, st.train_episodes, self.dtype,
+                                   self.device)
         t0 = time.perf_counter()
-        est = method.estimate(self.scenario, self.scenario_network, train, test.measurements, self.seed)
+        est = method.estimate(scenario, network, train, test.measurements, seed)
         wall = time.perf_counter() - t0
-        metrics = position_metrics(est, self.scenario.positions(test.states))
+        metrics = position_metrics(est, scenario.positions(test.states))
         kinds = ["sensor" if bool(s) else "comm" for s in est.sensing]
-        keys = dict(method=method.label, scenario=spec.name, units=spec.units, train_episodes=st.train_episodes,
-                    test_episodes=st.test_episodes)
+        keys = dict(seed=int(seed), method=method.label, scenario=spec.name, units=spec.units,
+                    train_episodes=st.train_episodes, test_episodes=st.test_episodes)
         df = node_rows(metrics, est.nodes, kinds, **keys)
         timing = pd.DataFrame({**{k: [v] for k, v in keys.items()}, "node": ["all"], "node_kind": ["all"],
                                "episode": [-1], "metric": ["runtime_s"], "value": [wall]})
-        if diagnostics is not None:
-            diagnostics.timings["method_s"] = round(wall, 3)
-        return pd.concat([df, timing], ignore_index=True)
+        return pd.concat([df, timing], ignore_index=True), wall
+
+
+#: the override keys that choose a cell's method: the preset, or its parts
+METHOD_KEYS = ("method", "filter", "model", "observation", "consensus", "learner")
+
+
+def check_method_chosen(cfg: Any, keys) -> None:
+    """A cell needs a method: refuse a ``task=matrix`` command line that names neither a preset (``method=``) nor
+    any part of one (``filter=``, ``model=``, ...; ``keys``: the override keys of the command line or the sweep,
+    an experiment counts as choosing), with the presets to pick from. Without it the root config's default parts
+    would run silently (the EKF with the online GP: minutes and gigabytes on Liu's 200 sensors)."""
+    if str(cfg.task.get("name")) != "matrix":
+        return
+    heads = {str(k).lstrip("+~").split(".")[0].split("@")[0] for k in keys}
+    if heads & {*METHOD_KEYS, "experiment"}:
+        return
+    from dslearn.conf_paths import CONF_DIRS
+
+    presets = sorted({p.stem for d in CONF_DIRS for p in (d / "method").glob("*.yaml")})
+    raise ConfigError(f"task=matrix needs method=<preset> (or the parts: filter=, model=, observation=, consensus=, "
+                      f"learner=); presets: {', '.join(presets)}")
 
 
 def cell_network(scenario: Any, placed: SensorNetwork | None) -> SensorNetwork:
