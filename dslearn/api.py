@@ -21,14 +21,22 @@ SHORT_KEYS = {"train_episodes": "data.train_episodes", "test_episodes": "data.te
 
 
 def compose(*overrides: str):
-    """The configuration ``dslearn-run <overrides>`` would run (validated)."""
+    """The configuration ``dslearn-run <overrides>`` would run (validated); a ``hydra.searchpath=[...]`` among them
+    (or given earlier in the process) adds the user's config folders, as on the command line."""
     from hydra import compose as hydra_compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     import dslearn.schemas  # noqa: F401  (the task schemas the configs name)
-    from dslearn.conf_paths import CONF_DIR
+    from dslearn.conf_paths import CONF_DIR, add_search_path, search_overrides
+    from dslearn.run import parse_override
     from dslearn.schemas.core import validate_config
 
+    given = [parse_override(line) for line in overrides]
+    for o in given:  # the user's config folders join the command's (their options count in every check)
+        if o.key_or_group == "hydra.searchpath" and not o.is_delete():
+            add_search_path(o.value())
+    if not any(o.key_or_group == "hydra.searchpath" for o in given):
+        overrides = (*search_overrides(), *overrides)
     if GlobalHydra.instance().is_initialized():
         cfg = hydra_compose("config", overrides=list(overrides))
     else:

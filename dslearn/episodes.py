@@ -90,6 +90,9 @@ class ScenarioSpec:
         source: ``simulated`` or ``recorded`` (a data set).
         pools: ``(training, test)`` episodes a recorded scenario holds (a run may ask for at most these; the
             up-front check of ``task=matrix`` refuses more), ``None`` for a simulator (any number).
+        dynamics: the motion model the scenario simulates its targets with, where a method may take it as
+            known: ``social_force`` (Helbing's social force, its parameters the scenario's ``sfm``); ``None``
+            for a recording or a simulator that offers none (``model=sfm`` needs ``social_force``).
     """
 
     name: str
@@ -102,6 +105,7 @@ class ScenarioSpec:
     networked: bool = True
     source: str = "simulated"
     pools: tuple[int, int] | None = None
+    dynamics: str | None = None
 
 
 @dataclass

@@ -381,6 +381,10 @@ def _hydra_task(cfg: DictConfig) -> dict:
     from dslearn.io import RunDirBusy, RunLock
 
     hc = HydraConfig.get()
+    if hc.get("searchpath"):  # the user's config folders count in this process too (a launcher's worker)
+        from dslearn.conf_paths import add_search_path
+
+        add_search_path(list(hc.searchpath))
     out_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
     job = _hydra_job()
@@ -531,20 +535,10 @@ def _is_group(key: str) -> bool:
 
 
 def _user_search_dirs(value) -> list[Path]:
-    """The folders of a ``hydra.searchpath=[...]`` override (``file://`` or plain paths; ``pkg://`` entries are
-    packages, not folders, and are left to Hydra)."""
-    items = value if isinstance(value, (list, tuple)) else [value]
-    out = []
-    for item in items:
-        s = str(item)
-        if s.startswith("pkg://"):
-            continue
-        d = Path(s[len("file://"):] if s.startswith("file://") else s).expanduser()
-        if not d.is_dir():
-            raise ConfigError(f"hydra.searchpath: {s} is not a folder (give config folders as file:///abs/path "
-                              "or pkg://package.module)")
-        out.append(d.resolve())
-    return out
+    """The folders of a ``hydra.searchpath=[...]`` override (:func:`dslearn.conf_paths.user_search_dirs`)."""
+    from dslearn.conf_paths import user_search_dirs
+
+    return user_search_dirs(value)
 
 
 #: (group, a name users try) -> (the option meant, what it is): names from the papers that are not file names
@@ -987,7 +981,9 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
                         "to add, or key=a,b with -m to sweep")
         for o in parsed:  # user config folders first: their groups and options count in the checks below
             if o.key_or_group == "hydra.searchpath" and not o.is_delete():
-                CONF_DIRS.extend(d for d in _user_search_dirs(o.value()) if d not in CONF_DIRS)
+                from dslearn.conf_paths import add_search_path
+
+                add_search_path(o.value())  # and every composition below gets the same search path
         for o in parsed:
             moved = _moved(o)
             if moved is not None:
@@ -1011,9 +1007,11 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
                 groups = tuple(o.input_line for o in _parse_all(combos[0]) if _is_group_override(o))
                 seeded[groups] = master
 
-            def _compose(ov):
+            from dslearn.conf_paths import search_overrides
+
+            def _compose(ov):  # each job with the user's search path (Hydra applies it per composition)
                 key = tuple(ov)
-                return seeded.pop(key) if key in seeded else compose("config", overrides=list(ov))
+                return seeded.pop(key) if key in seeded else compose("config", overrides=[*search_overrides(), *ov])
 
             select = sweep_select(master) if multirun else None
             if select is not None:  # the sweeper's choice (the matrix: the cells that fit); the others are no jobs
@@ -1346,6 +1344,7 @@ def main(argv: list[str] | None = None) -> None:
             old_term = None
         try:
             _app()
+            _exit_if_cells_failed()
         finally:
             sys.argv = old
             _USER_ARGV = None
@@ -1364,6 +1363,18 @@ def main(argv: list[str] | None = None) -> None:
         what = "SIGTERM" if isinstance(e, Terminated) else "Ctrl-C"
         _say("interrupted", f"{what} before the run started; nothing was written")
         raise SystemExit(code) from None
+
+
+def _exit_if_cells_failed() -> None:
+    """Exit 1 after a matrix sweep in which cells failed in the up-front check (their parts raised while built:
+    not run; :data:`dslearn.schemas.matrix.FAILED_CELLS`), once the sweep's other jobs ran and were gathered."""
+    mx = sys.modules.get("dslearn.schemas.matrix")
+    failed = list(getattr(mx, "FAILED_CELLS", None) or [])
+    if failed:
+        _say("failed cells", f"{len(failed)} cell(s) of the matrix failed while their parts were built and did not "
+                             f"run (matrix_cells.csv: status failed, with the error): "
+                             + "; ".join(f"{r.get('method')} on {r.get('scenario')}" for r in failed))
+        raise SystemExit(1)
 
 
 def _interrupted_sweep() -> dict | None:

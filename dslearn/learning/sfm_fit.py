@@ -16,6 +16,7 @@ import math
 import torch
 from torch import Tensor
 
+from dslearn.models.base import MotionModel
 from dslearn.models.social_force import SocialForce
 from dslearn.types import POS, VEL, StepContext, agents
 
@@ -131,6 +132,8 @@ class FittedSocialForce(SocialForce):
     desired velocities 0."""
 
     learns_offline = True
+    #: fitted to any scenario's tracks: it needs nothing of the simulation (unlike model=sfm)
+    spec_misfit = staticmethod(MotionModel.spec_misfit)
 
     @classmethod
     def for_scenario(

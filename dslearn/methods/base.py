@@ -5,7 +5,7 @@ training episodes (:meth:`Method.estimate`)."""
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import Callable, Protocol, runtime_checkable
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
 from dslearn.network import SensorNetwork
@@ -20,6 +20,13 @@ class Method(Protocol):
     ``estimate``: learn (online from the training episodes' measurements, or offline where the learner is
     declared supervised, e.g. the LSTM's) and return the estimates on the test measurements; the test truth
     is never seen.
+
+    What a method needs of a scenario is also declared before it is built: the engine's class (the ``filter``
+    part's ``_target_``) and the classes of the parts it takes (the ``model`` part's, ...) may each have a
+    ``spec_misfit(spec) -> str | None`` (a class or static method), the reason read from the spec alone
+    (:func:`declared_misfit`). The matrix asks these first and builds only the cells they let through, so a
+    part that cannot be sized for a scenario is never built for it; ``fits`` then adds what only the built
+    parts can tell (e.g. a prediction step that needs a kind of motion model).
     """
 
     label: str
@@ -40,3 +47,21 @@ def require(spec: ScenarioSpec, what: str, **need) -> str | None:
             allowed = " or ".join(map(str, want)) if isinstance(want, tuple) else str(want)
             return f"{what} needs {key} {allowed}; scenario {spec.name} has {have}"
     return None
+
+
+def declared(target) -> Callable[[ScenarioSpec], str | None] | None:
+    """The ``spec_misfit`` a part's ``_target_`` declares (the object Hydra would call: a class, a factory
+    classmethod, whose class is asked, or a function with a ``spec_misfit`` attribute), ``None`` where it
+    declares nothing."""
+    for owner in (target, getattr(target, "__self__", None)):
+        check = getattr(owner, "spec_misfit", None) if owner is not None else None
+        if callable(check):
+            return check
+    return None
+
+
+def declared_misfit(target, spec: ScenarioSpec) -> str | None:
+    """Why the part built by ``target`` cannot be built for a scenario with ``spec`` (its declared
+    ``spec_misfit``, :func:`declared`), ``None`` where it can or declares nothing."""
+    check = declared(target)
+    return None if check is None else check(spec)

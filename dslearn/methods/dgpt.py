@@ -84,8 +84,13 @@ class DGPTMethod:
         rule = self.fusion.rule + (" normalised" if self.fusion.normalise_beta else "")
         return f"dgpt {rule}" + ("" if self.gp_input == "temporal" else f" {self.gp_input}")
 
-    def fits(self, spec: ScenarioSpec) -> str | None:
+    @staticmethod
+    def spec_misfit(spec: ScenarioSpec) -> str | None:
+        """What the engine needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`)."""
         return require(spec, "Liu's DGPT (sensors that measure each target's position)", measurement="position")
+
+    def fits(self, spec: ScenarioSpec) -> str | None:
+        return DGPTMethod.spec_misfit(spec)
 
     def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
                  seed: int) -> Estimates:

@@ -140,9 +140,14 @@ class DistributedFilter:
         extra = "" if own else f" learner={getattr(self.learner, 'label', self.learner.name)}"
         return f"{getattr(self.predict, 'name', 'ekf')} {self.model_name} {self.fusion.name}{omega}{extra}"
 
+    @staticmethod
+    def spec_misfit(spec: ScenarioSpec) -> str | None:
+        """What the engine needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`)."""
+        return require(spec, "the distributed filter (position sensors, agents [p, v] in 2-D, a network)",
+                       measurement="position", state="pv2d", networked=True)
+
     def fits(self, spec: ScenarioSpec) -> str | None:
-        reason = require(spec, "the distributed filter (position sensors, agents [p, v] in 2-D, a network)",
-                         measurement="position", state="pv2d", networked=True)
+        reason = DistributedFilter.spec_misfit(spec)
         # a prediction step that needs a kind of motion model (filter=adf: the exact GP; filter=ukf_mm: a GP)
         misfit = getattr(self.predict, "model_misfit", None) if reason is None else None
         return reason if misfit is None else misfit(self.model, self.model_name)

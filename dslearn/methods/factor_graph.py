@@ -119,9 +119,14 @@ class FactorGraphMethod:
         extra = "" if s.obs_var == "convergence" else f" {s.obs_var}"
         return f"fg_ekf t={self.iterations}{extra}"
 
-    def fits(self, spec: ScenarioSpec) -> str | None:
+    @staticmethod
+    def spec_misfit(spec: ScenarioSpec) -> str | None:
+        """What the engine needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`)."""
         return require(spec, "Jiang's factor-graph identification + EKF-FG (sensors that measure squared ranges "
-                             "to a 2-D source)", measurement="squared_range")
+                           "to a 2-D source)", measurement="squared_range")
+
+    def fits(self, spec: ScenarioSpec) -> str | None:
+        return FactorGraphMethod.spec_misfit(spec)
 
     def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
                  seed: int) -> Estimates:

@@ -117,9 +117,14 @@ class RBPFMethod:
     def label(self) -> str:
         return f"rbpf_em {self.fusion.name}"
 
-    def fits(self, spec: ScenarioSpec) -> str | None:
+    @staticmethod
+    def spec_misfit(spec: ScenarioSpec) -> str | None:
+        """What the engine needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`)."""
         return require(spec, "Braga et al.'s RBPF + online EM (platforms that measure the terrain altitude under "
-                             "them, over a communication graph)", measurement="terrain_altitude", networked=True)
+                           "them, over a communication graph)", measurement="terrain_altitude", networked=True)
+
+    def fits(self, spec: ScenarioSpec) -> str | None:
+        return RBPFMethod.spec_misfit(spec)
 
     def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
                  seed: int) -> Estimates:

@@ -28,6 +28,13 @@ class MotionModel(nn.Module, abc.ABC):
     #: whether :meth:`add_data` changes the model (the runner skips training otherwise)
     learnable: bool = False
 
+    @staticmethod
+    def spec_misfit(spec) -> str | None:
+        """What the model needs of a scenario beyond what the engine that takes it needs, declared on the class
+        and read from the scenario's :class:`~dslearn.episodes.ScenarioSpec` alone, before the model is built
+        (:func:`dslearn.methods.base.declared_misfit`); ``None``: nothing more."""
+        return None
+
     @abc.abstractmethod
     def forward(self, x: Tensor, ctx: StepContext) -> Tensor:
         """Predicted mean. ``(*B, Dx) -> (*B, Dx)``."""

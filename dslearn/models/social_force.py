@@ -81,6 +81,14 @@ class SocialForce(MotionModel):
         softening: :math:`\epsilon` of :func:`soft_distance` in metres (>= 0).
     """
 
+    @staticmethod
+    def spec_misfit(spec) -> str | None:
+        """``model=sfm`` takes the simulation's own parameters: a scenario that simulates the social force."""
+        if spec.dynamics == "social_force":
+            return None
+        return (f"model=sfm is the true social-force model of a simulated crowd: it takes the scenario's social-force "
+                f"parameters, which scenario {spec.name} does not have (model=sfm_fit fits them to training tracks)")
+
     @classmethod
     def for_scenario(cls, noise_std: float = 1e-3, *, scenario, device=None) -> "SocialForce":
         """The config factory (``conf/model/sfm.yaml``): the true model, with the simulation's

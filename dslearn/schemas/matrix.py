@@ -1,7 +1,13 @@
 """Schema of ``task=matrix`` (one cell of the comparison matrix: a method on a scenario), and what decides
 whether a cell fits (:func:`cell`): the up-front check of one run refuses a cell that does not fit; the
 matrix sweep (``hydra/sweeper=matrix``, ``experiment=matrix``) drops it and records why (:func:`select_cells`,
-which the sweeper and ``dslearn-run``'s up-front check both apply)."""
+which the sweeper and ``dslearn-run``'s up-front check both apply).
+
+A cell is n/a only by what its method says of the scenario's declared spec: what the engine and its parts'
+classes declare (``spec_misfit``, read before any part is built: a part that cannot be sized for a scenario is
+never built for it), then the built method's ``fits``. An exception while its parts are built is no verdict: a
+single run stops with it, a sweep records the cell as failed (``matrix_cells.csv``: ``status`` failed and the
+``error``; not run; ``dslearn-report`` shows it failed)."""
 
 from __future__ import annotations
 
@@ -11,8 +17,8 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
-from dslearn.errors import ConfigError
-from dslearn.schemas.base import register_task
+from dslearn.errors import ConfigError, DataFormatError
+from dslearn.schemas.base import check_preset_keys, register_task
 from dslearn.studies.matrix import MatrixSettings
 
 
@@ -42,6 +48,9 @@ class Cell:
     scenario: str
     units: str
     reason: str | None
+    #: whether ``method`` is the method's label; ``False``: refused by what its engine or parts declare of the spec,
+    #: the method was not built (``method`` names its parts, :func:`parts_label`)
+    built: bool = True
 
 
 class _MetaSlots:
@@ -77,66 +86,187 @@ def check_pools(cfg: DictConfig, spec) -> None:
         raise ConfigError("; ".join(over) + " or change scenario.episodes (how the recording is cut and split)")
 
 
-def cell(cfg: DictConfig) -> Cell:
-    """The cell of a ``task=matrix`` configuration: its method and scenario built as a run builds them (on the
-    meta device, without consuming a random draw of the run) and the method's verdict on the scenario's
-    declared spec (:meth:`dslearn.methods.base.Method.fits`). A configuration that cannot be built raises, as does
-    one asking for more episodes than a recorded scenario's pools hold (:func:`check_pools`)."""
-    slots = _MetaSlots(cfg)
-    spec = slots["scenario"].spec
-    check_pools(cfg, spec)
-    with torch.random.fork_rng(devices=[]):
-        method = slots["method"]
-    return Cell(str(method.label), str(spec.name), str(spec.units), method.fits(spec))
-
-
-def _sentence(c: Cell) -> str | None:
-    return None if c.reason is None else f"{c.method} does not fit scenario {c.scenario}: {c.reason}"
-
-
-def misfit(cfg: DictConfig) -> str | None:
-    """Why the cell of ``cfg`` does not fit (one sentence naming the method, the scenario and what is missing),
-    ``None`` where it fits or ``cfg`` is not a matrix cell."""
-    if str(cfg.task.get("name")) != "matrix":
-        return None
-    try:
-        return _sentence(cell(cfg))
-    except ConfigError:
-        raise  # a bad value: the configuration's error, not a verdict on the cell
-    except Exception as e:  # noqa: BLE001 - a part that cannot be sized for this scenario (as judge and select_cells)
-        spec = _MetaSlots(cfg)["scenario"].spec
-        parts = ", ".join(f"{g} {cfg[g].get('name', cfg[g].get('_target_'))}" for g in ("filter", "model", "consensus")
-                          if g in cfg and cfg[g] is not None)
-        return f"the method ({parts}) does not fit scenario {spec.name}: its parts cannot be built for it: {_one_line(e)}"
+class CellBuildError(RuntimeError):
+    """A cell whose parts raised while they were built for its scenario although the method declares that it
+    fits (a fault in a part, not a verdict on the cell): a single run stops with it, a sweep records the cell as
+    failed (:func:`select_cells`)."""
 
 
 def _one_line(e: BaseException) -> str:
     return " ".join(str(e).split()) or type(e).__name__
 
 
-def judge(cfg: DictConfig) -> dict:
-    """The record of one combination of a matrix sweep: ``method`` (label), ``scenario`` (name), ``units``,
-    ``reason`` (``None``: the cell fits and runs) and ``unbuilt`` (the method's parts could not be built for
-    this scenario: ``reason`` is the error, ``method`` empty). A scenario that cannot be built raises (a bad
-    configuration), as does one asking for more episodes than a recorded scenario holds (:func:`check_pools`:
-    a bad count, never an n/a cell). A configuration of another task is a job whatever it is (empty labels)."""
-    if str(cfg.task.get("name")) != "matrix":
-        return {"method": "", "scenario": "", "units": "", "reason": None, "unbuilt": False}
-    from dslearn.learning.learners import LearnerRefused
+def _error_text(e: BaseException) -> str:
+    """``Type: message`` on one line (a :class:`CellBuildError`: its own message, which says it already)."""
+    if isinstance(e, CellBuildError):
+        return _one_line(e)
+    return f"{type(e).__name__}: {_one_line(e)}"
 
+
+def _part_target(node, key: str):
+    """The object a part's ``_target_`` names (ConfigError naming ``<key>._target_`` where it cannot be imported)."""
+    from hydra.utils import get_object
+
+    target = node.get("_target_") if isinstance(node, DictConfig) else None
+    if not target:
+        return None
+    try:
+        return get_object(str(target))
+    except Exception as e:  # noqa: BLE001 - hydra raises ImportError / plain Exception
+        raise ConfigError(f"{key}._target_={target!r} cannot be imported: {str(e).splitlines()[0]}") from None
+
+
+def declared_reason(cfg: DictConfig, spec) -> str | None:
+    """Why the method of ``cfg`` does not fit a scenario with ``spec``, by what its engine (``filter._target_``)
+    and the parts that engine takes (:func:`dslearn.compose.method_takes`) declare of a spec
+    (:func:`dslearn.methods.base.declared_misfit`): read from the spec alone, before any part is built;
+    ``None`` where nothing declared refuses it."""
+    from dslearn.compose import method_takes
+    from dslearn.methods.base import declared_misfit
+
+    engine = _part_target(cfg.filter, "filter")
+    reason = declared_misfit(engine, spec) if engine is not None else None
+    for group in () if reason is not None else method_takes(cfg):
+        target = _part_target(cfg.get(group), group)
+        reason = declared_misfit(target, spec) if target is not None else None
+        if reason is not None:
+            break
+    return reason
+
+
+def parts_label(cfg: DictConfig) -> str:
+    """A method named by its parts (``filter DistributedFilter, model sfm, consensus hybrid``): the row of a cell
+    whose method was not built (its own label is known only once it is)."""
+    from dslearn.compose import method_takes
+
+    out = []
+    for g in ("filter", *[g for g in method_takes(cfg) if g != "learner"]):
+        node = cfg.get(g)
+        if isinstance(node, DictConfig):
+            out.append(f"{g} {node.get('name') or str(node.get('_target_', '?')).rsplit('.', 1)[-1]}")
+    return ", ".join(out)
+
+
+def _build_method(slots: "_MetaSlots", spec):
+    """The cell's method built on the meta device (no random draw of the run consumed). A configuration error
+    (a bad value, a learner the engine refuses) raises as it is; any other exception is a fault in a part:
+    :class:`CellBuildError` naming the scenario and the error."""
+    try:
+        with torch.random.fork_rng(devices=[]):
+            return slots["method"]
+    except (ConfigError, DataFormatError):
+        raise
+    except Exception as e:  # noqa: BLE001 - any other error is a fault, never an n/a cell
+        raise CellBuildError(f"the method's parts ({parts_label(slots.cfg)}) raised while built for scenario "
+                             f"{spec.name}: {type(e).__name__}: {_one_line(e)}") from e
+
+
+def cell(cfg: DictConfig) -> Cell:
+    """The cell of a ``task=matrix`` configuration: first what its engine and parts declare of the scenario's
+    spec (:func:`declared_reason`: a method refused there is not built, and its row is named by its parts,
+    :func:`parts_label`), then its method built as a run builds it (on the meta device, without consuming a random
+    draw of the run) and the method's verdict on the spec (:meth:`dslearn.methods.base.Method.fits`). A
+    configuration that cannot be built raises (a bad value: ConfigError; a fault in a part:
+    :class:`CellBuildError`), as does one asking for more episodes than a recorded scenario's pools hold
+    (:func:`check_pools`)."""
     slots = _MetaSlots(cfg)
     spec = slots["scenario"].spec
     check_pools(cfg, spec)
+    return _cell(slots, spec, label=True)
+
+
+def _label_if_built(slots: _MetaSlots) -> str | None:
+    """The method's label where its parts can be built for the cell's scenario, else ``None``: for the row of a
+    method already refused by what it declares (never a verdict: an error here only leaves the label unknown)."""
     try:
         with torch.random.fork_rng(devices=[]):
-            method = slots["method"]
-    except LearnerRefused:
-        raise  # a learner the engine cannot use with these parts: a bad configuration on any scenario, never n/a
-    except Exception as e:  # noqa: BLE001 - a part that cannot be sized for this scenario (decided in select_cells)
-        return {"method": "", "scenario": str(spec.name), "units": str(spec.units), "unbuilt": True,
-                "reason": f"its parts cannot be built for scenario {spec.name}: {_one_line(e)}"}
-    c = Cell(str(method.label), str(spec.name), str(spec.units), method.fits(spec))
-    return {"method": c.method, "scenario": c.scenario, "units": c.units, "reason": _sentence(c), "unbuilt": False}
+            return str(slots["method"].label)
+    except Exception:  # noqa: BLE001 - a part refused for this scenario may not be sized for it
+        return None
+
+
+def _cell(slots: _MetaSlots, spec, label: bool = False) -> Cell:
+    """:func:`cell` on built slots; ``label``: a method refused by its declaration is still built, if it can be, for
+    its label (a single run's message; a sweep takes the label from the method's other cells)."""
+    reason = declared_reason(slots.cfg, spec)
+    if reason is not None:
+        own = _label_if_built(slots) if label else None
+        return Cell(own or parts_label(slots.cfg), str(spec.name), str(spec.units), reason, built=own is not None)
+    method = _build_method(slots, spec)
+    return Cell(str(method.label), str(spec.name), str(spec.units), method.fits(spec))
+
+
+def _sentence(c: Cell) -> str | None:
+    if c.reason is None:
+        return None
+    who = c.method if c.built else f"the method ({c.method})"
+    return f"{who} does not fit scenario {c.scenario}: {c.reason}"
+
+
+def misfit(cfg: DictConfig) -> str | None:
+    """Why the cell of ``cfg`` does not fit (one sentence naming the method, the scenario and what is missing),
+    ``None`` where it fits or ``cfg`` is not a matrix cell. Parts that raise while built for a scenario they
+    declare they fit raise :class:`CellBuildError` (a single run stops with that error, not "does not fit")."""
+    if str(cfg.task.get("name")) != "matrix":
+        return None
+    return _sentence(cell(cfg))
+
+
+#: the status of a combination of a matrix sweep (``matrix_cells.csv``'s ``status``): a job; the method does not
+#: fit the scenario (``reason``; the report's "n/a", a word CSV readers would take for a missing value); the
+#: sweep's ``task.left_out`` leaves it out (``reason``); its parts raised while the up-front check built them
+#: (``error``): not run, shown failed by ``dslearn-report``
+STATUSES = ("run", "does_not_fit", "left_out", "failed")
+#: the records of the cells that failed in this process's matrix sweep (the sweeper adds them; ``dslearn-run``
+#: exits 1 after the sweep where there are any)
+FAILED_CELLS: list[dict] = []
+
+
+def _scenario_key(cfg: DictConfig) -> str:
+    """The scenario node of ``cfg`` resolved (what :func:`dslearn.compose.build_scenario` builds from)."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    return json.dumps(OmegaConf.to_container(cfg.scenario, resolve=True), sort_keys=True, default=str)
+
+
+def judge(cfg: DictConfig, scenarios: dict | None = None) -> dict:
+    """The record of one combination of a matrix sweep: ``method`` (label), ``scenario`` (name), ``units``,
+    ``status`` (:data:`STATUSES`: ``run``, ``does_not_fit`` or ``failed``), ``reason`` (why it does not fit, ``None``
+    otherwise), ``error`` (``failed``: the exception, one line) and ``built`` (whether the method was built:
+    its ``method`` is then its label, else its parts, :func:`parts_label`).
+
+    A cell is n/a only by what its method says of the scenario's declared spec (:func:`declared_reason` before
+    any part is built, then :meth:`~dslearn.methods.base.Method.fits`); an exception while its scenario or its
+    method is built is a failed cell. A configuration error (a bad value, a learner the engine cannot use, more
+    episodes than a recorded scenario holds: :func:`check_pools`) raises, never a cell. A configuration of
+    another task is a job whatever it is (empty labels). ``scenarios``: the scenarios built so far (by their
+    resolved config node), shared by the combinations of a sweep (a scenario is built once, not once per method)."""
+    rec = {"method": "", "scenario": "", "units": "", "status": "run", "reason": None, "error": None, "built": True}
+    if str(cfg.task.get("name")) != "matrix":
+        return rec
+    slots = _MetaSlots(cfg)
+    key = _scenario_key(cfg) if scenarios is not None else None
+    if key is not None and key in scenarios:
+        slots._built["scenario"] = scenarios[key]
+    try:
+        spec = slots["scenario"].spec
+        if key is not None:
+            scenarios[key] = slots["scenario"]
+    except (ConfigError, DataFormatError):
+        raise
+    except Exception as e:  # noqa: BLE001 - a fault in the scenario: a failed cell, never n/a
+        return {**rec, "status": "failed", "built": False, "method": parts_label(cfg),
+                "error": f"scenario {cfg.scenario.get('_target_')} raised while built: {_error_text(e)}"}
+    check_pools(cfg, spec)
+    rec.update(scenario=str(spec.name), units=str(spec.units))
+    try:
+        c = _cell(slots, spec)
+    except CellBuildError as e:
+        return {**rec, "status": "failed", "built": False, "method": parts_label(cfg), "error": _error_text(e)}
+    return {**rec, "method": c.method, "built": c.built, "reason": _sentence(c),
+            "status": "run" if c.reason is None else "does_not_fit"}
 
 
 def _method_key(combo) -> tuple[str, ...]:
@@ -156,18 +286,24 @@ def _option(combo, group: str) -> str | None:
     return None
 
 
+def group_options(group: str) -> list[str]:
+    """The options of a config group in every config folder of the command (the package's and the user's
+    ``hydra.searchpath`` folders, :data:`dslearn.conf_paths.CONF_DIRS`)."""
+    from dslearn.conf_paths import CONF_DIRS
+
+    return sorted({p.stem for d in CONF_DIRS for p in (d / group).glob("*.yaml")})
+
+
 def left_out(cfg: DictConfig, combo) -> str | None:
     """Why the sweep leaves the combination ``combo`` out (``task.left_out``: a preset on some scenarios, with the
-    reason), ``None`` where it does not. Each entry must name a ``conf/method`` preset, ``conf/scenario`` options
-    and a reason: a :class:`~dslearn.errors.ConfigError` otherwise, before any job (a typo must not run the cells
-    it meant to leave out)."""
-    from dslearn.conf_paths import CONF_DIR
-
+    reason), ``None`` where it does not. Each entry must name a ``method`` preset, ``scenario`` options (of the
+    package's config folder or the user's ``hydra.searchpath`` folders) and a reason: a
+    :class:`~dslearn.errors.ConfigError` otherwise, before any job (a typo must not run the cells it meant to
+    leave out)."""
     entries = cfg.task.get("left_out") if str(cfg.task.get("name")) == "matrix" else None
     if not entries:
         return None
-    methods = sorted(p.stem for p in (CONF_DIR / "method").glob("*.yaml"))
-    scenarios = sorted(p.stem for p in (CONF_DIR / "scenario").glob("*.yaml"))
+    methods, scenarios = group_options("method"), group_options("scenario")
     method, scenario = _option(combo, "method"), _option(combo, "scenario")
     found = None
     for k, e in enumerate(entries):
@@ -184,40 +320,64 @@ def left_out(cfg: DictConfig, combo) -> str | None:
     return found
 
 
+#: the override keys that choose a cell's method: its preset, or its parts
+_METHOD_GROUPS = ("method", "filter", "model", "observation", "consensus", "learner")
+
+
+def _row_label(combo, rec: dict, labels: dict) -> str:
+    """The row of a combination whose method was not built: the method's label where the sweep built it on
+    another scenario, else its options (``ekf_lin_hybrid model=mine``: the preset and the parts the combination
+    sets), else its parts (:func:`parts_label`)."""
+    if _method_key(combo) in labels:
+        return labels[_method_key(combo)]
+    preset = _option(combo, "method")
+    parts = [f"{g}={_option(combo, g)}" for g in _METHOD_GROUPS[1:] if _option(combo, g) is not None]
+    return " ".join(([preset] if preset else []) + parts) or rec["method"]
+
+
 def select_cells(combos, compose) -> tuple[list[list[str]], list[dict]]:
-    """The combinations of a sweep that become jobs (in order) and one record per combination: :func:`judge`'s,
-    plus ``job`` (its job number, ``None`` where it does not run) and ``overrides`` (its lines).
+    """The combinations of a sweep that become jobs (in order) and one record per combination: :func:`judge`'s
+    (``method``, ``scenario``, ``units``, ``status``, ``reason``, ``error``), plus ``job`` (its job number,
+    ``None`` where it does not run) and ``overrides`` (its lines).
 
     ``compose(lines)`` composes one combination. A combination whose method fits the scenario runs; one whose
-    method declares that it does not fit (:meth:`~dslearn.methods.base.Method.fits`) is dropped with that
-    reason. A method whose parts cannot be built for a scenario (e.g. the social force model with the
-    simulation's parameters, on a scenario that simulates no social forces) does not fit that scenario
-    either, provided it is built for another scenario of the sweep; a method built for no scenario of the
-    sweep is a configuration error (:class:`~dslearn.errors.ConfigError` with the first error), so a bad
-    value is never turned into "n/a" cells. A cell that fits but that the sweep's ``task.left_out`` lists
-    (:func:`left_out`) is dropped with that reason."""
-    records = []
+    method declares that it does not fit (before it is built, then :meth:`~dslearn.methods.base.Method.fits`)
+    is ``does_not_fit`` with that reason (an "n/a" cell); one whose parts raise while they are built is
+    ``failed`` with the error (not run, never n/a); a cell that fits but that the sweep's ``task.left_out`` lists
+    (:func:`left_out`) is ``left_out`` with that reason. A configuration error in any combination raises
+    (:class:`~dslearn.errors.ConfigError`), so a bad value is never turned into cells. The row of a method that
+    was not built is its label from another scenario of the sweep (:func:`_row_label`)."""
+    records, scenarios = [], {}
     for combo in combos:
         cfg = compose(list(combo))
-        rec = {**judge(cfg), "overrides": " ".join(combo)}
+        check_preset_keys(cfg, [(line.split("=", 1)[0], line) for line in combo])  # a preset's key another part lacks
+        rec = {**judge(cfg, scenarios), "overrides": " ".join(combo)}
+        rec["scenario"] = rec["scenario"] or (_option(combo, "scenario") or "")
         why = left_out(cfg, combo)
-        if why is not None and rec["reason"] is None:
-            rec["reason"] = f"{rec['method']} on scenario {rec['scenario']} is left out of this sweep (task.left_out): {why}"
+        if why is not None and rec["status"] == "run":
+            rec["status"] = "left_out"
+            rec["reason"] = (f"{rec['method']} on scenario {rec['scenario']} is left out of this sweep "
+                             f"(task.left_out): {why}")
         records.append((list(combo), rec))
-    built = {}
+    labels = {}
     for combo, rec in records:
-        if not rec.get("unbuilt"):
-            built.setdefault(_method_key(combo), rec["method"])
+        if rec["built"]:
+            labels.setdefault(_method_key(combo), rec["method"])
+    for combo, rec in records:  # a method refused on every scenario of the sweep: its label, where it can be built
+        if rec["status"] == "does_not_fit" and not rec["built"] and _method_key(combo) not in labels:
+            own = _label_if_built(_MetaSlots(compose(list(combo))))
+            if own is not None:
+                labels[_method_key(combo)] = own
     kept, out = [], []
     for combo, rec in records:
-        if rec.pop("unbuilt", False):
-            label = built.get(_method_key(combo))
-            if label is None:
-                raise ConfigError(f"the method of {rec['overrides']} is built for no scenario of the sweep; on "
-                                  f"scenario {rec['scenario']}: {rec['reason'].split(': ', 1)[1]}")
-            rec["method"], rec["reason"] = label, f"{label} does not fit scenario {rec['scenario']}: {rec['reason']}"
-        rec["job"] = len(kept) if rec["reason"] is None else None
-        if rec["reason"] is None:
+        if not rec.pop("built"):
+            label = _row_label(combo, rec, labels)
+            if rec["status"] == "does_not_fit":
+                head = f"the method ({rec['method']}) does not fit scenario {rec['scenario']}: "
+                rec["reason"] = f"{label} does not fit scenario {rec['scenario']}: {rec['reason'][len(head):]}"
+            rec["method"] = label
+        rec["job"] = len(kept) if rec["status"] == "run" else None
+        if rec["status"] == "run":
             kept.append(combo)
         out.append(rec)
     return kept, out
@@ -225,7 +385,8 @@ def select_cells(combos, compose) -> tuple[list[list[str]], list[dict]]:
 
 def check(cfg: DictConfig) -> None:
     """The method must fit the scenario: refused up front, before any job of a sweep, with the reason (a
-    sweep with the matrix sweeper drops such a cell before it gets here)."""
+    sweep with the matrix sweeper drops such a cell before it gets here). Parts that raise while built raise
+    :class:`CellBuildError` (the run stops with the error)."""
     reason = misfit(cfg)
     if reason is not None:
         raise ConfigError(reason)

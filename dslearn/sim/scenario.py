@@ -75,8 +75,9 @@ class SocialForceScenario:
     @property
     def spec(self) -> ScenarioSpec:
         """What the scenario offers (:class:`~dslearn.episodes.ScenarioSpec`): positions of ``A`` agents
-        measured by range-limited sensors, states ``[p, v]`` per agent."""
-        return ScenarioSpec("yu", "position", self.num_agents, "pv2d", self.dt, self.steps)
+        measured by range-limited sensors, states ``[p, v]`` per agent, moved by the social force (``dynamics``,
+        its parameters :attr:`sfm`)."""
+        return ScenarioSpec("yu", "position", self.num_agents, "pv2d", self.dt, self.steps, dynamics="social_force")
 
     def positions(self, states: Tensor) -> Tensor:
         """``(B, K+1, 4A) -> (B, K+1, A, 2)``."""

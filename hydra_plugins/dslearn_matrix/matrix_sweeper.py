@@ -5,12 +5,15 @@ fit the scenario, decided on each combination's composed configuration before an
 The decision is the ``select`` function's (named by its import path; default
 :func:`dslearn.schemas.matrix.select_cells`: each cell's method and scenario built on PyTorch's meta device,
 and the method's ``fits`` on the scenario's declared spec). It returns the combinations that run and one
-record per combination (``method``, ``scenario``, ``units``, ``reason``, ``job``, ``overrides``). The sweeper
-writes every record into the sweep folder, ``matrix_cells.csv`` (with the job number of each combination
-that runs), and the dropped ones, with their reasons, into ``skipped_cells.csv``; ``dslearn-report`` shows
-them as "n/a" cells. The launcher (basic, joblib, ...) gets only the jobs that fit, numbered 0, 1, ... in
-the sweep's order, so every launcher runs the same jobs and a resumed sweep (``resume=true``) numbers them
-alike. ``dslearn-run``'s up-front check applies the same function (the sweeper's ``select`` key).
+record per combination (``method``, ``scenario``, ``units``, ``status``, ``reason``, ``error``, ``job``,
+``overrides``). The sweeper writes every record into the sweep folder, ``matrix_cells.csv`` (with the job number
+of each combination that runs and its ``status``: ``run``, ``does_not_fit``, ``left_out`` or ``failed``), and
+the dropped ones with a reason (n/a, left out) into ``skipped_cells.csv``; ``dslearn-report`` shows them as
+"n/a" cells. A combination whose parts raised while they were built (``failed``, with its ``error``) is not run
+either: the sweeper says so on stderr and in its log, ``dslearn-run`` exits 1 after the sweep, and
+``dslearn-report`` shows it as failed. The launcher (basic, joblib, ...) gets only the jobs that fit, numbered
+0, 1, ... in the sweep's order, so every launcher runs the same jobs and a resumed sweep (``resume=true``) numbers
+them alike. ``dslearn-run``'s up-front check applies the same function (the sweeper's ``select`` key).
 """
 
 
@@ -58,6 +61,19 @@ def write_records(sweep_dir: Path, records: list[dict]) -> None:
     atomic_write_csv(table[table["reason"].notna()].drop(columns="job"), sweep_dir / SKIPPED_FILE)
 
 
+def say_failed(failed: list[dict], where: Path) -> None:
+    """Say loudly (stderr and the sweep's log) which combinations failed in the up-front check and will not run,
+    each with its error; ``where``: the file that records them."""
+    import sys
+
+    lines = [f"matrix sweeper: {len(failed)} combination(s) FAILED while their parts were built and will not run "
+             f"(an error in a part, not an n/a cell; recorded in {where}):"]
+    lines += [f"  FAILED {r.get('method')} on scenario {r.get('scenario')} ({r.get('overrides')}): {r.get('error')}"
+              for r in failed]
+    log.error("\n".join(lines))
+    print("\n".join(lines), file=sys.stderr, flush=True)
+
+
 class MatrixSweeper(BasicSweeper):
     """Hydra's basic sweeper over the combinations that fit (see the module's text)."""
 
@@ -74,13 +90,23 @@ class MatrixSweeper(BasicSweeper):
 
         assert self.hydra_context is not None and self.config is not None
         combos = BasicSweeper.split_arguments(overrides, None)[0]
+        from dslearn.conf_paths import add_search_path
+        from dslearn.studies.matrix import CELLS_FILE
+
+        add_search_path(self.config.hydra.get("searchpath") or [])  # the user's folders: their options count too
         loader = self.hydra_context.config_loader
         kept, records = get_object(self.select)(combos, lambda ov: loader.load_sweep_config(self.config, ov))
         self._composed = {tuple(c) for c in kept}
         sweep_dir = Path(str(self.config.hydra.sweep.dir))
         write_records(sweep_dir, records)
+        failed = [r for r in records if r.get("status") == "failed"]
         log.info("matrix sweeper: %d of %d combinations fit and run; %d dropped, with the reasons in %s", len(kept),
-                 len(combos), len(combos) - len(kept), sweep_dir / SKIPPED_FILE)
+                 len(combos), len(combos) - len(kept) - len(failed), sweep_dir / SKIPPED_FILE)
+        if failed:
+            from dslearn.schemas import matrix
+
+            say_failed(failed, sweep_dir / CELLS_FILE)
+            matrix.FAILED_CELLS.extend(failed)  # dslearn-run exits 1 after the sweep's other jobs
         if not kept:
             return []
         n = len(kept) if max_batch_size in (None, -1) else int(max_batch_size)
