@@ -324,9 +324,16 @@ def _progress_default() -> bool:
 
 
 def _describe(cfg: DictConfig, job: dict) -> str:
+    """The run's (a sweep's job's) first line: task, study, seed, its overrides and which parts of a method preset
+    they replace (:func:`~dslearn.schemas.base.preset_replaced`)."""
     parts = [f"task={cfg.task.name}", f"study={cfg.study}", f"seed={cfg.seed}"]
     if job.get("overrides"):
         parts.append("overrides: " + " ".join(job["overrides"]))
+        from dslearn.schemas.base import preset_replaced
+
+        swapped = preset_replaced(job["overrides"])
+        if swapped:
+            parts.append(swapped)
     return ", ".join(parts)
 
 

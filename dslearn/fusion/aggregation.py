@@ -201,6 +201,10 @@ class AggregationRule:
     """
 
     kind = "aggregation"
+    #: the experts' predictions go to a fusion centre: the network's links are not read
+    #: (:func:`dslearn.schemas.base.unread_keys`)
+    uses_links = False
+    config_unread = "a GP aggregation rule at a fusion centre"
 
     def __init__(self, rule: str, normalise_beta: bool = False):
         check_choice("consensus.rule", rule, CENTRE_RULES)

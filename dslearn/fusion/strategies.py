@@ -40,6 +40,11 @@ class Fusion:
 
     name = "base"
     uses_omega = False
+    #: the keys of its ``conf/consensus`` node it reads (:func:`dslearn.schemas.base.unread_keys`) and why it reads no
+    #: other; ``uses_links``: whether it sends anything over the network's links (else the links are not read)
+    config_reads: tuple[str, ...] = ("iterations", "weights", "omega")
+    config_unread = "it reads iterations, weights and omega"
+    uses_links = True
 
     def __init__(self, weights: Tensor, iterations: int = 4, omega: float | str = "one"):
         if int(iterations) != iterations or iterations < 0:
@@ -80,6 +85,9 @@ class Individual(Fusion):
     """No communication: each node fuses only its own measurements."""
 
     name = "individual"
+    config_reads = ()
+    config_unread = "each node alone: no consensus rounds"
+    uses_links = False
 
     def __call__(self, q_pred, o_pred, dq, do, wl=None):
         return q_pred + dq, symmetrize(o_pred + do)
@@ -92,6 +100,9 @@ class Centralized(Fusion):
     """
 
     name = "centralized"
+    config_reads = ()
+    config_unread = "a fusion centre: no consensus rounds"
+    uses_links = False
 
     def __call__(self, q_pred, o_pred, dq, do, wl=None):
         return q_pred + dq.sum(0, keepdim=True), symmetrize(o_pred + do.sum(0, keepdim=True))
@@ -112,6 +123,8 @@ class ConsensusOnInformation(Fusion):
     r"""CI: local posterior first, then :math:`L` rounds on the posterior information pair."""
 
     name = "ci"
+    config_reads = ("iterations", "weights")
+    config_unread = "omega weighs the novel information of consensus=hybrid|cm only"
 
     def __call__(self, q_pred, o_pred, dq, do, wl=None):
         w = self.wl if wl is None else wl
@@ -142,6 +155,8 @@ class ConsensusOnEstimates(Fusion):
     """
 
     name = "ce"
+    config_reads = ("iterations", "weights")
+    config_unread = "omega weighs the novel information of consensus=hybrid|cm only"
 
     def __call__(self, q_pred, o_pred, dq, do, wl=None):
         w = self.wl if wl is None else wl

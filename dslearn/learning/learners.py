@@ -50,6 +50,8 @@ class OnlineLearning:
     """Yu et al. Algorithm 1: the parts that learn online learn while tracking the training episodes."""
 
     name: ClassVar[str] = "online"
+    #: the parts it lets learn online while tracking (:func:`dslearn.schemas.base.online_learning`)
+    config_online_parts: ClassVar[tuple] = ("model", "observation")
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,8 @@ class OfflineLearning:
     """The motion model fitted once to the training episodes' true tracks (``fit_offline``), then frozen."""
 
     name: ClassVar[str] = "offline"
+    #: the parts it lets learn online while tracking (:func:`dslearn.schemas.base.online_learning`)
+    config_online_parts: ClassVar[tuple] = ("observation",)
 
 
 @dataclass(frozen=True)
@@ -64,6 +68,8 @@ class NoLearning:
     """Nothing is learned: the parts as configured."""
 
     name: ClassVar[str] = "none"
+    #: the parts it lets learn online while tracking (:func:`dslearn.schemas.base.online_learning`)
+    config_online_parts: ClassVar[tuple] = ()
 
 
 # ------------------------------------------------------------------------------------------------ helpers
@@ -198,8 +204,33 @@ class OnlineHyperparameters:
 
     hyper: Any = field(default_factory=_hyper_defaults)
 
+    @staticmethod
+    def config_unused(cfg, node) -> dict:
+        """The keys of ``learner.hyper`` the chosen optimiser does not read (:func:`hyper_unused`)."""
+        return hyper_unused(node.get("hyper"), "learner.hyper")
+
     def __post_init__(self) -> None:
         self.hyper = hyper_config(self.hyper, "learner.hyper")
+
+
+#: the keys of the hyperparameter settings each kind of optimiser reads (the others: Newton's, or the steps')
+_NEWTON_KEYS, _STEP_KEYS = ("tol", "max_iters"), ("lr", "iters", "iters_first")
+
+
+def hyper_unused(hyper: Any, prefix: str) -> dict[str, str]:
+    """``{key: why}`` of the hyperparameter settings (``learner.hyper`` / ``task.hyper``, relative to ``hyper``)
+    that its ``optimizer`` does not read: Newton's tolerance and cap under Adam / SGD, the steps' size and counts
+    under Newton."""
+    if hyper is None or not hasattr(hyper, "get"):
+        return {}
+    opt = hyper.get("optimizer", "adam")
+    if opt == "newton":
+        keys, why = _STEP_KEYS, f"{prefix}.optimizer=newton solves each problem to {prefix}.tol; no fixed steps"
+    elif opt in ("adam", "sgd"):
+        keys, why = _NEWTON_KEYS, f"{prefix}.optimizer={opt} takes {prefix}.iters steps of size {prefix}.lr; no Newton solve"
+    else:
+        return {}
+    return {f"hyper.{k}": why for k in keys if k in hyper}
 
 
 # --------------------------------------------------------------------------- Jiang: factor-graph identification

@@ -199,3 +199,9 @@ def aggregated_for_scenario(*, scenario, num_nodes: int, dtype, device, aggregat
                           f"{aggregation}); choose model.noise=latent or model.noise=predictive")
     base = GPMotionModel(scenario.state_dim, num_nodes, dtype=dtype, device=device, **gp_keys)
     return AggregatedGPMotion(base, str(aggregation), bool(normalise_beta), str(aggregation_jacobian))
+
+
+#: a GP that learns online; the keys it does not read (:func:`dslearn.models.gp.config_unused`)
+aggregated_for_scenario.config_learns_online = True
+aggregated_for_scenario.config_unused = GPMotionModel.config_unused
+

@@ -21,3 +21,9 @@ def gp_cv_for_scenario(*, scenario, num_nodes: int, dtype, device, mean=None, **
                           "scenario's dt; leave model.mean null (or choose model=gp_increment for another mean)")
     return GPMotionModel.for_scenario(scenario=scenario, num_nodes=num_nodes, dtype=dtype, device=device,
                                       mean=ConstantVelocityMean(float(scenario.dt)), **keys)
+
+
+#: a GP that learns online; the keys it does not read (:func:`dslearn.models.gp.config_unused`)
+gp_cv_for_scenario.config_learns_online = True
+gp_cv_for_scenario.config_unused = GPMotionModel.config_unused
+

@@ -51,6 +51,7 @@ class GPObservation(ObservationModel):
     """
 
     learnable = True
+    config_learns_online = True  #: it learns online (:func:`dslearn.schemas.base.online_learning`)
 
     def __init__(
         self,

@@ -16,6 +16,12 @@ A study's configuration is checked in three stages, all before any work starts:
 4. **What the task reads of the root groups** (``uses=`` of :func:`register_task`, with what it
    uses instead of the others): ``dslearn-run``'s start-up check refuses an override, on the
    command line or in a sweep, of a root group the task does not read (:func:`check_overrides`).
+5. **What each part reads of its own config node** (:func:`unread_keys`): the class or factory a node's
+   ``_target_`` names declares the keys it reads (``config_reads``) and those it does not read with this
+   composed configuration (``config_unused``); an override of a key inside a root group that the chosen
+   part does not read is refused too, naming the key and why (:func:`check_part_keys`, from
+   :func:`check_overrides`), in the tasks that build that group's option as the part (``parts=`` of
+   :func:`register_task`).
 
 Constructors then check only what needs the built objects (shapes, connectivity).
 """
@@ -23,6 +29,7 @@ Constructors then check only what needs the built objects (shapes, connectivity)
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any, Callable
 
@@ -115,8 +122,10 @@ class TaskSpec:
     ``uses``: the root groups (:data:`ROOT_GROUPS`, :data:`PRESET_GROUPS`) the task reads, or keys under one it
     reads alone (``"consensus.iterations"``); a function of the composed config where that depends on the task's
     own keys. ``instead``: per root group it does not use, what it uses instead (for the message).
-    ``unused``: a function of the composed config giving task keys this configuration does not read
-    (``{"task.aggregations": "why"}``). Overriding any of them is refused by :func:`check_overrides`."""
+    ``unused``: a function of the composed config giving task keys (or keys of a root group it reads) this
+    configuration does not read (``{"task.aggregations": "why"}``). ``parts``: the root groups whose option the
+    task builds as the part it names (``_target_``), so that the part's own declaration of the keys it reads
+    applies (:func:`unread_keys`). Overriding any key not read is refused by :func:`check_overrides`."""
 
     name: str
     schema: type
@@ -124,6 +133,7 @@ class TaskSpec:
     uses: Any = ()
     instead: dict = dataclasses.field(default_factory=dict)
     unused: Callable[[DictConfig], dict] | None = None
+    parts: tuple = ()
 
 
 #: task name -> its schema and cross-field check (filled by :func:`register_task`)
@@ -131,18 +141,19 @@ TASKS: dict[str, TaskSpec] = {}
 
 
 def register_task(name: str, schema: type, check: Callable[[DictConfig], None] | None = None, *,
-                  uses, instead: dict | None = None, unused: Callable[[DictConfig], dict] | None = None) -> type:
+                  uses, instead: dict | None = None, unused: Callable[[DictConfig], dict] | None = None,
+                  parts=()) -> type:
     """Store ``schema`` as ``schema/task/<name>`` in Hydra's ConfigStore and remember its check and
     the root groups it reads (``uses``, see :class:`TaskSpec`; every task declares them)."""
     from hydra.core.config_store import ConfigStore
 
     paths = () if callable(uses) else tuple(uses)
-    bad = [u for u in paths if u.split(".")[0] not in ROOT_GROUPS + PRESET_GROUPS]
+    bad = [u for u in paths + tuple(parts) if u.split(".")[0] not in ROOT_GROUPS + PRESET_GROUPS]
     if bad:
         raise TypeError(f"task {name}: uses={bad} names no root group; root groups: {list(ROOT_GROUPS + PRESET_GROUPS)}")
     ConfigStore.instance().store(group="schema/task", name=name, node=schema)
     TASKS[name] = TaskSpec(name, schema, check, uses if callable(uses) else paths,
-                           {**PRESET_INSTEAD, **LEARNER_INSTEAD, **(instead or {})}, unused)
+                           {**PRESET_INSTEAD, **LEARNER_INSTEAD, **(instead or {})}, unused, tuple(parts))
     return schema
 
 
@@ -164,7 +175,8 @@ def check_overrides(cfg: DictConfig, overrides) -> None:
     configuration does not read. ``overrides``: ``(key, line)`` pairs of the command line / sweep
     (``key`` = the group or the dotted key the line sets, e.g. ``consensus`` for ``consensus=ci``,
     ``consensus.iterations`` for ``consensus.iterations=3``). Only what the command line or a sweep
-    sets counts: an experiment file that selects groups for its own task is not an override here."""
+    sets counts: an experiment file that selects groups for its own task is not an override here. Then a key
+    inside a root group that the chosen part does not read (:func:`check_part_keys`)."""
     spec = TASKS.get(str(cfg.task.name))
     if spec is None:
         return
@@ -184,12 +196,298 @@ def check_overrides(cfg: DictConfig, overrides) -> None:
                 raise ConfigError(f"task={spec.name} uses only {', '.join(inside)} of the root group {head}{tail}; "
                                   f"remove {line}")
             raise ConfigError(f"task={spec.name} does not use the root group {head}{tail}; remove {line}")
-        if head == "task" and spec.unused is not None:
+        if (head == "task" or head in ROOT_GROUPS) and spec.unused is not None:
             if unused is None:
                 unused = spec.unused(cfg) or {}
             for k, why in unused.items():
                 if _within(key, k):
                     raise ConfigError(f"{k} is not used by task={spec.name} {why}; remove {line}")
+    check_part_keys(cfg, overrides)
+
+
+# ------------------------------------------------------------------------------------------------
+# what each part reads of its own config node
+
+#: keys of a part's config node that name, label or build it rather than set something it reads
+PART_KEYS = ("_target_", "_partial_", "name")
+
+
+def part_class(target) -> Any:
+    """The class or factory function a ``_target_`` names (a ``Class.factory`` classmethod: its class); ``None``
+    where it cannot be imported (its builder reports that, naming the key)."""
+    from hydra.utils import get_object
+
+    try:
+        obj = get_object(str(target))
+    except Exception:  # noqa: BLE001 - hydra raises ImportError / plain Exception
+        return None
+    return getattr(obj, "__self__", obj)
+
+
+def option_target(group: str, name: str) -> str | None:
+    """The ``_target_`` of option ``name`` of ``group`` (its YAML file, following the defaults list within the
+    group where the file names none); ``None`` where there is no such option."""
+    from dslearn.conf_paths import CONF_DIRS
+
+    return _option_target(group, name, tuple(CONF_DIRS))
+
+
+@functools.lru_cache(maxsize=1024)
+def _option_target(group: str, name: str, dirs: tuple) -> str | None:
+    CONF_DIRS = dirs
+    seen = set()
+    while name and name not in seen:
+        seen.add(name)
+        path = next((d / group / f"{name}.yaml" for d in CONF_DIRS if (d / group / f"{name}.yaml").is_file()), None)
+        if path is None:
+            return None
+        node = OmegaConf.load(path)
+        if node.get("_target_"):
+            return str(node._target_)
+        parents = [str(d) for d in (node.get("defaults") or []) if isinstance(d, str) and d != "_self_"]
+        name = parents[0] if parents else None
+    return None
+
+
+def _flag(target, attr: str, default=False):
+    cls = part_class(target) if target else None
+    return getattr(cls, attr, default) if cls is not None else default
+
+
+def _label(cfg: DictConfig, group: str) -> str:
+    node = cfg.get(group)
+    name = node.get("name") if isinstance(node, DictConfig) else None
+    return f"{group}={name}" if name else group
+
+
+def online_learning(cfg: DictConfig, part: str | None = None) -> str | None:
+    """``None`` where, with this composed configuration, the motion model (``part="model"``), or any part
+    (``part=None``), learns online while tracking; else why not (a phrase naming the parts).
+
+    What learns online: a motion or observation model whose class declares ``config_learns_online`` (the GPs),
+    with a learner whose class lets it (``config_online_parts``: the parts it lets learn online; ``learner=online``
+    both, ``offline`` the observation model, ``backprop`` the motion model, ``none`` neither). Without a learner
+    part (every task but the matrix, or ``learner: null``) the parts learn as they declare. The motion models
+    are ``task.models`` where the task has them (``task=yu_faults``, ``ethucy_tracking``), else the root ``model``."""
+    uses = {u.split(".")[0] for u in task_uses(cfg)}
+    learner = cfg.get("learner") if "learner" in uses else None
+    lets, lname = ("model", "observation"), None
+    if isinstance(learner, DictConfig) and learner.get("_target_"):
+        cls = part_class(learner._target_)
+        if cls is None:
+            return None
+        lets = tuple(getattr(cls, "config_online_parts", lets))
+        lname = f"learner={getattr(cls, 'name', learner._target_)}"
+    models = None
+    names = cfg.task.get("models") if isinstance(cfg.get("task"), DictConfig) else None
+    if names is not None:
+        targets, models = [], ", ".join(str(m) for m in names)
+        for m in names:
+            t = option_target("model", str(m))
+            if t is None and isinstance(cfg.get("model"), DictConfig):  # an alias of the root model (ethucy_tracking: gp)
+                t = cfg.model.get("_target_")
+            if t is None:
+                return None  # not known here: taken as read
+            targets.append(t)
+        models = f"task.models=[{models}]"
+    else:
+        targets = [cfg.model.get("_target_")] if isinstance(cfg.get("model"), DictConfig) else []
+        models = _label(cfg, "model")
+    model_online = any(_flag(t, "config_learns_online") for t in targets)
+    obs = cfg.get("observation") if "observation" in uses else None
+    obs_online = isinstance(obs, DictConfig) and _flag(obs.get("_target_"), "config_learns_online")
+    if part == "model":
+        if "model" in lets and model_online:
+            return None
+        if lname is not None and "model" not in lets:
+            return f"with {lname} the motion model learns nothing online"
+        return f"{models} learns nothing online"
+    if ("model" in lets and model_online) or ("observation" in lets and obs_online):
+        return None
+    if lname is not None:
+        return f"with {lname} nothing learns online"
+    return f"with {models} and {_label(cfg, 'observation')} nothing learns online"
+
+
+def _who(group: str, prefix: str, node: DictConfig, cls: Any) -> str:
+    name = node.get("name") if prefix == group else None
+    if isinstance(name, str) and name:
+        return f"{group}={name}"
+    label = getattr(cls, "config_label", None)
+    if label:
+        return str(label)
+    name = getattr(cls, "name", None)
+    if isinstance(name, str) and name and prefix == group:
+        return f"{group}={name}"
+    return f"{prefix}._target_={node.get('_target_')}"
+
+
+def _unread(cfg: DictConfig, node: DictConfig, group: str, prefix: str, out: dict) -> None:
+    target = node.get("_target_")
+    cls = part_class(target) if target else None
+    if cls is None:
+        return
+    who = _who(group, prefix, node, cls)
+    keys = [str(k) for k in node.keys() if k not in PART_KEYS]
+    reads = getattr(cls, "config_reads", None)
+    if reads is not None:
+        why = getattr(cls, "config_unread", "it does not read it")
+        for k in keys:
+            if k not in reads:
+                out[f"{prefix}.{k}"] = (who, why)
+    hook = getattr(cls, "config_unused", None)
+    if hook is not None:
+        for k, why in (hook(cfg, node) or {}).items():
+            w, why = why if isinstance(why, tuple) else (who, why)
+            out.setdefault(f"{prefix}.{k}", (w, why))
+    for k in keys:
+        if f"{prefix}.{k}" in out:
+            continue
+        try:
+            sub = node.get(k)
+        except Exception:  # noqa: BLE001 - an interpolation that does not resolve here: its builder says so
+            continue
+        if isinstance(sub, DictConfig) and sub.get("_target_"):
+            _unread(cfg, sub, group, f"{prefix}.{k}", out)
+
+
+def unread_keys(cfg: DictConfig, group: str) -> dict[str, tuple[str, str]]:
+    """The keys of root group ``group``'s node that its part does not read with the composed configuration
+    ``cfg``: ``{full key: (the part, why)}``.
+
+    The part is the class or factory its ``_target_`` names (and, for a nested node with a ``_target_`` of its
+    own such as ``filter.predict``, that one). It declares what it reads:
+
+    * ``config_reads``: the keys of its node it reads (besides :data:`PART_KEYS`); every other key of the node is
+      not read, for the reason ``config_unread`` (a phrase). Without it every key is read (the builder passes
+      each to the constructor, which refuses a key it does not take);
+    * ``config_unused(cfg, node)``: the keys of its node (dotted below it) that it does not read with this
+      composed configuration, ``{key: why}`` (or ``{key: (the part, why)}`` to name another part as the reason):
+      e.g. the distributed filter's learning gate where nothing learns online (:func:`online_learning`)."""
+    node = cfg.get(group)
+    out: dict[str, tuple[str, str]] = {}
+    if isinstance(node, DictConfig):
+        _unread(cfg, node, group, group, out)
+    return out
+
+
+def check_part_keys(cfg: DictConfig, overrides) -> None:
+    """Refuse an override (``(key, line)`` pairs, as :func:`check_overrides`) of a key inside a root group that
+    the task builds as a part (``parts=`` of :func:`register_task`) where that part does not read it
+    (:func:`unread_keys`), and a method preset combined with a part that cannot take a key the preset sets
+    (:func:`check_preset_keys`)."""
+    spec = TASKS.get(str(cfg.task.name))
+    if spec is None:
+        return
+    check_preset_keys(cfg, overrides)
+    if not spec.parts:
+        return
+    cache: dict[str, dict] = {}
+    for key, line in overrides:
+        head, _, rest = key.partition(".")
+        if not rest or head not in spec.parts:
+            continue
+        if head not in cache:
+            cache[head] = unread_keys(cfg, head)
+        for k, (who, why) in cache[head].items():
+            if _within(key, k):
+                raise ConfigError(f"{k} is not used by {who} ({why}); remove {line}")
+
+
+def _preset_file(name: str):
+    from dslearn.conf_paths import CONF_DIRS
+
+    return _load_preset(name, tuple(CONF_DIRS))
+
+
+@functools.lru_cache(maxsize=256)
+def _load_preset(name: str, dirs: tuple):
+    for d in dirs:
+        p = d / "method" / f"{name}.yaml"
+        if p.is_file():
+            return OmegaConf.load(p)
+    return None
+
+
+def preset_choices(name: str) -> tuple[dict[str, str], dict[str, list[str]]]:
+    """What method preset ``name`` (``conf/method/<name>.yaml``) selects, ``{group: option}``, and the keys it
+    sets inside root groups, ``{group: [key, ...]}``."""
+    node = _preset_file(name)
+    if node is None:
+        return {}, {}
+    choices = {}
+    for d in node.get("defaults") or []:
+        if isinstance(d, DictConfig):
+            for k, v in d.items():
+                g = str(k).replace("override", "").strip().lstrip("/")
+                if g in ROOT_GROUPS:
+                    choices[g] = str(v)
+    keys = {str(g): [str(k) for k in sub.keys()] for g, sub in node.items()
+            if g in ROOT_GROUPS and isinstance(sub, DictConfig)}
+    return choices, keys
+
+
+def _chosen(overrides) -> dict[str, str]:
+    """``{group: option}`` of the group choices among ``(key, line)`` overrides."""
+    out = {}
+    for key, line in overrides:
+        if "." not in key and "=" in line and not line.startswith(("~", "+")):
+            out[key] = line.split("=", 1)[1]
+    return out
+
+
+def check_preset_keys(cfg: DictConfig, overrides) -> None:
+    """A method preset (``method=<preset>``) that sets a key inside a root group (``learner.learn``) combined with
+    another option of that group on the command line that takes no such key is refused, naming what the user
+    wrote (not a key the user never wrote)."""
+    import inspect
+
+    from hydra.utils import get_object
+
+    chosen = _chosen(overrides)
+    preset = chosen.get("method")
+    if not preset:
+        return
+    picks, keys = preset_choices(preset)
+    for group, ks in keys.items():
+        option = chosen.get(group)
+        node = cfg.get(group)
+        if option is None or option == picks.get(group) or not isinstance(node, DictConfig) or not node.get("_target_"):
+            continue
+        try:
+            params = inspect.signature(get_object(str(node._target_))).parameters
+        except Exception:  # noqa: BLE001 - its builder reports it
+            continue
+        if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            continue
+        bad = [k for k in ks if k not in params]
+        if bad:
+            sets = ", ".join(f"{group}.{k}" for k in bad)
+            others = " ".join(f"{g}={o}" for g, o in picks.items() if g != group)
+            raise ConfigError(f"method={preset} sets {sets}; {group}={option} takes no {', '.join(bad)}: remove "
+                              f"{group}={option} (the preset's {group}={picks.get(group)}), or choose the parts "
+                              f"without the preset: {others} {group}={option}")
+
+
+def preset_replaced(lines) -> str | None:
+    """The parts of a method preset that the command line replaces (``method=ekf_lin_hybrid consensus=ci`` ->
+    ``method=ekf_lin_hybrid with consensus=ci in place of its consensus=hybrid``), ``None`` where it replaces none
+    (or no preset is chosen)."""
+    pairs = []
+    for line in lines:
+        key = line.split("=", 1)[0]
+        if "=" in line and not key.startswith(("~", "+", "hydra")) and "@" not in key:
+            pairs.append((key, line))
+    chosen = _chosen(pairs)
+    preset = chosen.get("method")
+    if not preset or preset == "null":
+        return None
+    picks, _ = preset_choices(preset)
+    swapped = [(g, o) for g, o in chosen.items() if g in picks and o != picks[g]]
+    if not swapped:
+        return None
+    return (f"method={preset} with " + ", ".join(f"{g}={o}" for g, o in swapped) + " in place of its "
+            + ", ".join(f"{g}={picks[g]}" for g, _ in swapped))
 
 
 def validate_task(cfg: DictConfig) -> None:

@@ -468,7 +468,7 @@ def memory_limit_gb(max_memory_gb: float | None) -> tuple[float, str]:
 
 
 def estimate_core_memory(cfg: DictConfig) -> dict[str, float]:
-    """Estimated peak memory in bytes of a core-study (Yu) run, by part (float64 = 8 bytes).
+    r"""Estimated peak memory in bytes of a core-study (Yu) run, by part (float64 = 8 bytes).
 
     * ``episodes``: the training and test episodes, all simulated at once: states
       ``(B, K+1, 4m)`` (and the stacked trajectory, twice), measurements and noise

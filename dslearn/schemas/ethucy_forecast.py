@@ -98,6 +98,19 @@ def curves_path(name) -> Path | None:
         return None
 
 
-register_task("ethucy_forecast", EthucyForecastTask, check, uses=(), instead=INSTEAD)
+def unused(cfg: DictConfig) -> dict[str, str]:
+    """The task keys that ``task.predictors`` do not read: the LSTMs' settings and learning curves without an
+    LSTM among them, the GPs' without a GP (an override of them is refused)."""
+    preds = [str(p) for p in cfg.task.predictors]
+    out = {}
+    if not any(p in ("lstm", "social_lstm") for p in preds):
+        why = f"with task.predictors={preds} (no lstm or social_lstm)"
+        out.update({"task.lstm": why, "task.curves_file": why})
+    if not any(p in ("gp", "gp_state") for p in preds):
+        out["task.gp"] = f"with task.predictors={preds} (no gp or gp_state)"
+    return out
+
+
+register_task("ethucy_forecast", EthucyForecastTask, check, uses=(), instead=INSTEAD, unused=unused)
 register_slot("ethucy_forecast_datasets", lambda cfg, slots: task_specs(cfg.task))
 register_slot("ethucy_forecast_curves_file", lambda cfg, slots: curves_path(cfg.task.get("curves_file")))

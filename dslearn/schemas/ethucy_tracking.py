@@ -291,4 +291,5 @@ INSTEAD = {
     "data": "its episodes are task.train_episodes and task.test_episodes (task.data_sizes for data_size)",
 }
 
-register_task("ethucy_tracking", EthucyTrackingTask, check, uses=uses, instead=INSTEAD)
+register_task("ethucy_tracking", EthucyTrackingTask, check, uses=uses, instead=INSTEAD,
+              parts=("filter", "observation", "model"))  # not consensus: its CM fusion reads every key

@@ -63,14 +63,18 @@ def check(cfg: DictConfig) -> None:
 
 
 def unused(cfg: DictConfig) -> dict[str, str]:
-    """The task keys the chosen ``task.tracker`` does not read (an override of them is refused)."""
+    """The task keys the chosen ``task.tracker`` does not read, and the keys of ``task.hyper`` its optimiser does
+    not read (:func:`~dslearn.learning.learners.hyper_unused`; an override of them is refused)."""
+    from dslearn.learning.learners import hyper_unused
+
     tr = cfg.task.get("tracker")
+    out = {f"task.{k}": f"({why})" for k, why in hyper_unused(cfg.task.get("hyper"), "task.hyper").items()}
     if tr == "gp":
         why = "with task.tracker=gp (the centralised standard GP alone)"
-        return {"task.aggregations": why, "task.centralised": why}
-    if tr == "dgpt":
-        return {"task.centralised": "with task.tracker=dgpt (the aggregation rules alone)"}
-    return {}
+        out.update({"task.aggregations": why, "task.centralised": why})
+    elif tr == "dgpt":
+        out["task.centralised"] = "with task.tracker=dgpt (the aggregation rules alone)"
+    return out
 
 
 def uses(cfg: DictConfig) -> tuple[str, ...]:

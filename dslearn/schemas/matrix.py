@@ -410,4 +410,5 @@ register_task("matrix", MatrixSettings, check, uses=uses,
                        "observation": "this method's engine takes no observation model part",
                        "consensus": "this method's engine takes no fusion part",
                        "learner": "this method's engine takes no learner part",
-                       "data": "task.train_episodes / task.test_episodes"})
+                       "data": "task.train_episodes / task.test_episodes"},
+              parts=("scenario", "network", "model", "observation", "consensus", "filter", "learner"))

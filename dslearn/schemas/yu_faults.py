@@ -74,4 +74,8 @@ INSTEAD = {
     "data": "its episodes are task.train_episodes and task.test_episodes",
 }
 
-register_task("yu_faults", FaultTask, check, uses=USES, instead=INSTEAD)
+#: the root groups whose option is the part it builds (the keys each reads: :func:`dslearn.schemas.base.unread_keys`);
+#: not the network, whose links the fusions of task.fusions use
+PARTS = ("scenario", "observation", "filter")
+
+register_task("yu_faults", FaultTask, check, uses=USES, instead=INSTEAD, parts=PARTS)
