@@ -54,12 +54,15 @@ METRIC_UNITS: dict[str, str] = {
     "train_s": "s",
 }
 #: display names where the machine name would mislead
-METRIC_NAMES: dict[str, str] = {"nees": "state NEES/Dx"}
+METRIC_NAMES: dict[str, str] = {"nees": "state NEES/Dx", "nees_pos": "position NEES/2A"}
 #: what each NEES is, where a table shows it (a consistent filter gives 1)
 NEES_NOTES: dict[str, str] = {
     "nees": ("state NEES/Dx: the NEES of the whole state estimate (every target's position and velocity) over the "
              "state dimension Dx, mean over the steps; 1 = consistent (tracking.png plots the position NEES / 2A "
              "over time, with the 95 % band of a consistent filter)"),
+    "nees_pos": ("position NEES/2A: the NEES of the targets' positions over their 2A degrees of freedom (A targets), "
+                 "mean over the steps; 1 = consistent (dslearn-report: its 95 % interval and the band of a "
+                 "consistent filter)"),
 }
 #: display label of the ``avg`` node (the papers' "Average" row: the mean over sensing nodes)
 

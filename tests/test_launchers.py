@@ -1,7 +1,7 @@
 """The comparison matrix gives the same table on every Hydra launcher: one small matrix sub-sweep (2 jobs that fit,
 2 n/a cells) run with the basic launcher (in-process), joblib (the default, worker processes) and submitit's
 local mode (one process per job, its folder under the sweep dir), each reported with ``dslearn-report``; the
-values of ``matrix_values.csv`` must be equal to the last bit (same seeds, same random streams), the run time
+values of ``matrix.csv`` must be equal to the last bit (same seeds, same random streams), the run time
 aside, and the n/a cells the same. Ray is not tested here (it stays out of CI: experiments/matrix/README.md).
 
 Runs the installed commands in subprocesses, as tests/test_matrix.py's real sweep does."""
@@ -22,7 +22,7 @@ BIN = Path(sys.executable).parent  # the installed commands dslearn-run, dslearn
 pytestmark = pytest.mark.slow
 
 GRID = ["experiment=matrix_small", "method=ekf_lin_hybrid,dgpt_rbcm", "scenario=yu_two_agents,jiang",
-        "task.train_episodes=2", "task.test_episodes=2"]
+        "task.train_episodes=2", "task.test_episodes=2", "task.seeds=1"]
 LAUNCHERS = {
     "basic": ["hydra/launcher=basic"],
     "joblib": ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"],
@@ -51,30 +51,30 @@ def sweeps(tmp_path_factory):
 
 
 def _values(sweep):
-    return pd.read_csv(sweep / "matrix_values.csv", keep_default_na=False, dtype=str)
+    return pd.read_csv(sweep / "matrix.csv", keep_default_na=False, dtype=str)
 
 
 def test_matrix_values_equal_on_every_launcher(sweeps):
     base = _values(sweeps["basic"])
     # the sweep's cells: 2 jobs on yu, the 2 on jiang dropped (position methods, squared-range sensors)
     assert list(zip(base["method"], base["scenario"], base["status"])) == [
-        ("ekf lin hybrid", "yu", "ok"), ("ekf lin hybrid", "jiang", "skipped"),
-        ("dgpt rbcm", "yu", "ok"), ("dgpt rbcm", "jiang", "skipped")]
+        ("ekf_lin_hybrid", "yu_two_agents", "ok"), ("ekf_lin_hybrid", "jiang", "skipped"),
+        ("dgpt_rbcm", "yu_two_agents", "ok"), ("dgpt_rbcm", "jiang", "skipped")]
     assert list(base["job"]) == ["0", "", "1", ""]
     for name, sweep in sweeps.items():
         vals = _values(sweep)
         assert list(vals.columns) == list(base.columns), name
         cols = [c for c in base.columns if c not in TIMES]
         # as text: the CSV writes every float at full precision, so equal text = equal float64 values
-        pd.testing.assert_frame_equal(vals[cols], base[cols], obj=f"matrix_values.csv of {name} vs basic")
+        pd.testing.assert_frame_equal(vals[cols], base[cols], obj=f"matrix.csv of {name} vs basic")
         ok = vals["status"] == "ok"
         assert (vals.loc[ok, "runtime_s"].astype(float) > 0).all(), name
         # each cell's RMSE is its job's own rows' (sensor average per episode, mean over episodes), to the bit
         for _, row in vals[ok].iterrows():
             res = pd.read_csv(sweep / row["job"] / "results.csv")
             sens = res[(res["node_kind"] == "sensor") & (res["metric"] == "rmse")]
-            assert float(row["rmse"]) == sens.groupby("episode")["value"].mean().mean(), (name, row["method"])
-            assert int(row["episodes"]) == 2 == sens["episode"].nunique()
+            assert float(row["rmse_mean"]) == sens.groupby("episode")["value"].mean().mean(), (name, row["method"])
+            assert int(row["n_units"]) == 2 == sens["episode"].nunique() and row["seeds"] == "1"
         # every job's rows equal the basic launcher's (the run time aside)
         for job in ("0", "1"):
             a, b = (pd.read_csv(s / job / "results.csv") for s in (sweep, sweeps["basic"]))
@@ -83,13 +83,12 @@ def test_matrix_values_equal_on_every_launcher(sweeps):
 
 
 def test_na_cells_and_folders_equal_on_every_launcher(sweeps):
-    tables = {n: pd.read_csv(s / "matrix.csv", dtype=str, keep_default_na=False).set_index("method")
-              for n, s in sweeps.items()}
+    tables = {n: _values(s).set_index(["method", "scenario"]) for n, s in sweeps.items()}
     for name, tab in tables.items():
-        assert list(tab.columns) == ["yu", "jiang"], name
-        assert all(v.startswith("n/a: ") for v in tab["jiang"]), (name, list(tab["jiang"]))
-        assert tab["jiang"].equals(tables["basic"]["jiang"]), name
-        assert not any(v.startswith("n/a") for v in tab["yu"]), name
+        jiang = tab.xs("jiang", level="scenario")
+        assert (jiang["status"] == "skipped").all() and (jiang["note"] != "").all(), (name, jiang)
+        assert jiang["reason"].equals(tables["basic"].xs("jiang", level="scenario")["reason"]), name
+        assert (tab.xs("yu_two_agents", level="scenario")["status"] == "ok").all(), name
         skipped = pd.read_csv(sweeps[name] / "skipped_cells.csv")
         assert skipped.equals(pd.read_csv(sweeps["basic"] / "skipped_cells.csv")), name
         jobs = sorted(p.name for p in sweeps[name].iterdir() if p.is_dir() and not p.name.startswith("."))

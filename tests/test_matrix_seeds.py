@@ -73,3 +73,21 @@ def test_a_cell_without_a_method_is_refused_up_front():
     assert "presets: " in msg and "ekf_lin_hybrid" in msg and "dgpt_rbcm" in msg
     assert precheck(["task=matrix", "method=ekf_lin_hybrid", "scenario=liu_s1"]) is None
     assert precheck(["task=matrix", "filter=ukf", "model=lin", "scenario=liu_s1"]) is None  # the parts chosen
+
+
+def test_the_sweep_plan_counts_cells_seeds_and_estimates_by_hand():
+    from omegaconf import OmegaConf
+
+    from dslearn.studies.matrix import JOB_OVERHEAD_S, SECONDS_PER_EPISODE, plan_text
+
+    records = [dict(method="ekf lin hybrid", scenario="s1", job=0), dict(method="dgpt rbcm", scenario="yu", job=1),
+               dict(method="ekf lin hybrid", scenario="jiang", job=None),  # n/a: not counted
+               dict(method="never measured", scenario="yu", job=2)]
+    task = OmegaConf.create({"seeds": 2, "train_episodes": 4, "test_episodes": 6})
+    text = plan_text(records, task, workers=2)
+    # 2 seeds x (overhead + rate x 10 episodes) for each of the two measured cells, over 2 workers
+    sec = 2 * (2 * JOB_OVERHEAD_S + 10 * (SECONDS_PER_EPISODE[("ekf lin hybrid", "s1")]
+                                         + SECONDS_PER_EPISODE[("dgpt rbcm", "yu")])) / 2
+    assert text.startswith("matrix: 3 cells x 2 seed(s) = 6 draws of 4 training + 6 test episodes; ")
+    assert f"estimated {sec / 60:.1f} min of wall time on 2 worker(s) for the 2 measured cells" in text
+    assert "plus 1 cells never measured (not estimated)" in text and "one draw of one cell at a time" in text

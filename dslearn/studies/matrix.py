@@ -106,10 +106,12 @@ class MatrixCell:
         if seeds > 1 and self.draws is None:
             raise ConfigError(f"task.seeds={seeds}: this cell was built without the draws of the other seeds (the "
                               f"composition root's 'draws' slot); use task.seeds=1 or dslearn.api.build_study")
-        if seeds > 1:
-            log.info("%s on %s: %d draws (seeds %d..%d), %d training + %d test episodes each, one draw at a time",
-                     self.method.label, self.scenario.spec.name, seeds, self.seed, self.seed + seeds - 1,
-                     st.train_episodes, st.test_episodes)
+        rate = SECONDS_PER_EPISODE.get((str(self.method.label), str(self.scenario.spec.name)))
+        guess = (f"; estimated {seeds * rate * (st.train_episodes + st.test_episodes):.0f} s of learning and "
+                 f"estimation" if rate is not None else "")
+        log.info("%s on %s: %d draw(s) (seeds %d..%d), %d training + %d test episodes each, one draw at a time%s",
+                 self.method.label, self.scenario.spec.name, seeds, self.seed, self.seed + seeds - 1,
+                 st.train_episodes, st.test_episodes, guess)
         frames, total = [], 0.0
         for k in range(seeds):
             scenario, network, method = self._draw(k)
@@ -145,6 +147,50 @@ class MatrixCell:
         timing = pd.DataFrame({**{k: [v] for k, v in keys.items()}, "node": ["all"], "node_kind": ["all"],
                                "episode": [-1], "metric": ["runtime_s"], "value": [wall]})
         return pd.concat([df, timing], ignore_index=True), wall
+
+
+#: measured seconds per episode (training + test) of one draw's learning and estimation (the cell's ``runtime_s``
+#: over its 4 + 4 episodes), by (method label, scenario name): experiment=matrix_small, seed 0, on an idle 2-core
+#: machine. The start-up's estimate of a matrix sweep (:func:`plan_text`); cells not here are not estimated.
+SECONDS_PER_EPISODE = {
+    ("ekf lin hybrid", "yu"): 0.002, ("ekf lin hybrid", "s1"): 0.046, ("ekf lin hybrid", "s2"): 0.07,
+    ("ekf lin hybrid", "s3"): 0.055, ("ekf lin hybrid", "corridor"): 0.002,
+    ("ukf lin hybrid", "yu"): 0.004, ("ukf lin hybrid", "s1"): 0.04, ("ukf lin hybrid", "s2"): 0.038,
+    ("ukf lin hybrid", "s3"): 0.041, ("ukf lin hybrid", "corridor"): 0.002,
+    ("ekf sfm hybrid", "yu"): 0.008, ("ukf sfm hybrid", "yu"): 0.005,
+    ("ekf gp_increment hybrid", "yu"): 0.267, ("ekf gp_increment hybrid", "s1"): 0.735,
+    ("ekf gp_increment hybrid", "s2"): 0.475, ("ekf gp_increment hybrid", "s3"): 0.548,
+    ("ekf gp_increment hybrid", "corridor"): 0.014,
+    ("dgpt rbcm", "yu"): 0.009, ("dgpt rbcm", "s1"): 0.032, ("dgpt rbcm", "s2"): 0.038, ("dgpt rbcm", "s3"): 0.053,
+    ("dgpt rbcm", "corridor"): 0.007, ("fg_ekf t=10", "jiang"): 0.033, ("rbpf_em consensus_10", "braga"): 4.161,
+}
+#: a job's own cost beside the method's (start, composition, drawing the episodes, writing), per draw [s], measured
+#: the same way (the sweep's wall time less the cells' run times)
+JOB_OVERHEAD_S = 2.5
+
+
+def plan_text(records, settings: Any, workers: int) -> str:
+    """The start-up line of a matrix sweep: its cells (``records`` with a ``job`` run), the seeds and episodes of
+    each, the number of draws and the estimated wall time on ``workers`` parallel workers (from
+    :data:`SECONDS_PER_EPISODE` where the cell was measured, else not estimated) and the memory rule (one draw
+    of one cell per worker at a time)."""
+    runs = [r for r in records if r.get("job") is not None and not (isinstance(r.get("job"), float)
+                                                                    and r["job"] != r["job"])]
+    seeds, train, test = int(settings.get("seeds", 1)), int(settings.train_episodes), int(settings.test_episodes)
+    known, unknown = 0.0, 0
+    for r in runs:
+        rate = SECONDS_PER_EPISODE.get((str(r.get("method")), str(r.get("scenario"))))
+        if rate is None:
+            unknown += 1
+        else:
+            known += seeds * (JOB_OVERHEAD_S + rate * (train + test))
+    workers = max(1, int(workers))
+    est = (f"estimated {known / workers / 60:.1f} min of wall time on {workers} worker(s) for the "
+           f"{len(runs) - unknown} measured cells" + (f", plus {unknown} cells never measured (not estimated)"
+                                                      if unknown else "")) if runs else "nothing to run"
+    return (f"matrix: {len(runs)} cells x {seeds} seed(s) = {len(runs) * seeds} draws of {train} training + {test} "
+            f"test episodes; {est}; memory: each worker holds one draw of one cell at a time (a draw's peak, "
+            f"not the seeds')")
 
 
 #: the override keys that choose a cell's method: the preset, or its parts
