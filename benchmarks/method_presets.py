@@ -3,7 +3,7 @@ information filter with an EKF or UKF prediction step x five motion models x thr
 YAML file that selects the parts of a matrix cell (``dslearn-run task=matrix method=ekf_gp_hybrid``), the
 learner among them (the model's natural one: online for the GP, offline for the LSTMs, none for LIN and SFM).
 
-    python benchmarks/method_presets.py           # (re)write the 37 files
+    python benchmarks/method_presets.py           # (re)write the 41 files
     python benchmarks/method_presets.py --check   # exit 1 if a file is missing or differs from what it would write
 
 Other families' presets (``dgpt_*``, ``fg_ekf``, ``rbpf_em``) are written by hand beside these.
@@ -81,6 +81,15 @@ def presets() -> dict[str, str]:
             "backpropagation (learner=backprop).").replace(
             f"method=ekf_{m}_hybrid)", f"method=ekf_{m}_hybrid_backprop)").replace(
             f"learner: {LEARNERS[m]}", "learner: backprop") + f"learner:\n  learn: {learn}\n{extra}"
+    # the noises calibrated to the scenario (learner=calibrate: a scale of Q and of R by maximum likelihood of the
+    # nodes' training innovations, after the model's own learner: the GP online, the LSTM offline)
+    for m, what in (("lin", "LIN's Q"), ("sfm", "the social force's Q"), ("gp", "the GP's predictive variance"),
+                    ("lstm", "the LSTM's Q (its held-out residuals' covariance)")):
+        out[f"ekf_{m}_hybrid_calibrated.yaml"] = out[f"ekf_{m}_hybrid.yaml"].replace(
+            "hybrid consensus (L = 4 rounds).", f"hybrid consensus (L = 4 rounds), a scale of {what} and of R fitted to "
+            "the training measurements (learner=calibrate).").replace(
+            f"method=ekf_{m}_hybrid)", f"method=ekf_{m}_hybrid_calibrated)").replace(
+            f"learner: {LEARNERS[m]}", "learner: calibrate")
     return out
 
 

@@ -37,8 +37,8 @@ def _run(*overrides) -> tuple[str, torch.Tensor]:
 
 # ------------------------------------------------------------------------------------- the YAML files
 def test_options_and_yaml_defaults_equal_the_dataclass_defaults(make_cfg):
-    assert OPTIONS == sorted(L.LEARNERS) == sorted(["backprop", "fg_identification", "none", "offline", "online",
-                                                    "online_em", "online_hyperparameters"])
+    assert OPTIONS == sorted(L.LEARNERS) == sorted(["backprop", "calibrate", "fg_identification", "none", "offline",
+                                                    "online", "online_em", "online_hyperparameters"])
     for name in OPTIONS:
         node = make_cfg("task=matrix", f"learner={name}").learner  # composed only (the default engine takes few)
         cls = L.LEARNERS[name]
@@ -123,17 +123,17 @@ def test_paper_engines_take_their_own_learner_by_default(filt, scenario, cls):
 # ------------------------------------------------------------------------------------------- refusals
 REFUSALS = [
     (["method=ekf_lin_hybrid", "learner=online"], "learner=online: model lin learns nothing online",
-     "allowed: learner=none|backprop"),
+     "allowed: learner=none|backprop|calibrate"),
     (["method=ekf_gp_hybrid", "learner=offline"], "learner=offline: model gp_increment has no offline fit",
-     "allowed: learner=online|none|backprop"),
+     "allowed: learner=online|none|backprop|calibrate"),
     (["method=ekf_lstm_hybrid", "learner=none"], "learner=none: model lstm has no weights until trained offline",
-     "allowed: learner=offline|backprop"),
+     "allowed: learner=offline|backprop|calibrate"),
     (["method=ekf_social_lstm_hybrid", "learner=online"], "learner=online: model social_lstm has no weights",
-     "allowed: learner=offline|backprop"),
+     "allowed: learner=offline|backprop|calibrate"),
     (["method=ekf_gp_hybrid", "learner=online_em"], "learner=online_em: the distributed filter",
-     "allowed: learner=online|none|backprop"),
+     "allowed: learner=online|none|backprop|calibrate"),
     (["method=ekf_gp_hybrid", "model=gp_sgpr", "learner=offline"],
-     "learner=offline: model gp_sgpr has no offline fit", "allowed: learner=online|none"),
+     "learner=offline: model gp_sgpr has no offline fit", "allowed: learner=online|none|calibrate"),
     (["method=dgpt_rbcm", "scenario=liu_s1", "learner=online"], "learner=online: Liu's DGPT",
      "allowed: learner=online_hyperparameters"),
     (["method=fg_ekf", "scenario=jiang", "learner=none"], "learner=none: Jiang's EKF-FG",
@@ -154,7 +154,7 @@ def test_engines_refuse_a_learner_they_cannot_use(overrides, needle, allowed):
 def test_dslearn_run_exits_2_with_one_line(tmp_path):
     code, lines = _cli(["task=matrix", "method=ekf_lin_hybrid", "learner=online", f"hydra.run.dir={tmp_path / 'r'}"])
     assert code == 2 and lines == ["dslearn-run: configuration error: learner=online: model lin learns nothing "
-                                   "online, nor does the observation model; allowed: learner=none|backprop"], lines
+                                   "online, nor does the observation model; allowed: learner=none|backprop|calibrate"], lines
     assert not (tmp_path / "r").exists()
 
 

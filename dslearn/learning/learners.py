@@ -17,6 +17,9 @@ part) carries it out and refuses one it cannot use, at composition (:class:`Lear
 - :class:`~dslearn.learning.backprop.BackpropLearning` (``learner=backprop``): Q, R, the consensus weights,
   omega and a linear motion model's matrix learned by backpropagating through the distributed information
   filter and its consensus rounds (innovation likelihood; or supervised).
+- :class:`~dslearn.learning.calibrate.CalibrateLearning` (``learner=calibrate``): a scale of the process noise
+  Q and of the sensors' R fitted to the training measurements (maximum likelihood of each node's innovations,
+  the nodes alone; a batched grid search), then tracked with the configured fusion.
 
 ``learner: null`` (the default): each engine uses its own (natural) learner with these defaults, the values of
 ``conf/learner/<name>.yaml``.
@@ -298,5 +301,11 @@ def _backprop():
     return BackpropLearning
 
 
+def _calibrate():
+    from dslearn.learning.calibrate import CalibrateLearning
+
+    return CalibrateLearning
+
+
 LEARNERS = {c.name: c for c in (OnlineLearning, OfflineLearning, NoLearning, OnlineEM, OnlineHyperparameters,
-                                FactorGraphIdentification, _backprop())}
+                                FactorGraphIdentification, _backprop(), _calibrate())}

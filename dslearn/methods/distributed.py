@@ -15,10 +15,11 @@ import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
 from dslearn.filters.distributed import initial_belief
-from dslearn.fusion.strategies import Fusion
+from dslearn.fusion.strategies import Fusion, make_fusion
 from dslearn.learning.learners import NoLearning, OfflineLearning, OnlineLearning, refuse
 from dslearn.learning.backprop import (SUPPORTED_MODELS, BackpropLearning, BackpropParameters, fit, motion_misfit,
                                        motion_parameters, takes_q)
+from dslearn.learning.calibrate import CalibrateLearning, ScaledSensor, calibrate_misfit, scaled_model
 from dslearn.learning.fit_cache import fit_offline_cached
 from dslearn.learning.online import OnlineLearner
 from dslearn.models.observation import LinearPositionObservation
@@ -51,7 +52,7 @@ class DistributedFilter:
     """
 
     #: the learners it can use
-    learners = ("online", "offline", "none", "backprop")
+    learners = ("online", "offline", "none", "backprop", "calibrate")
     #: how the config layer names it (:func:`dslearn.schemas.base.unread_keys`)
     config_label = "the distributed filter"
 
@@ -87,9 +88,14 @@ class DistributedFilter:
         if isinstance(self.learner, BackpropLearning):
             self._check_backprop()
             return
+        if isinstance(self.learner, CalibrateLearning):
+            why = calibrate_misfit(self.observation, self.predict, self.learner.fit)
+            if why is not None:
+                raise refuse(self.learner, why, [a for a in allowed if a != "calibrate"])
+            return
         if not isinstance(self.learner, (OnlineLearning, OfflineLearning, NoLearning)):
-            raise refuse(self.learner, "the distributed filter (filter=default|ukf) takes learner=online|offline|none|backprop",
-                         allowed)
+            raise refuse(self.learner, "the distributed filter (filter=default|ukf) takes "
+                         "learner=online|offline|none|backprop|calibrate", allowed)
         if name in allowed:
             return
         model = f"model {self.model_name}"
@@ -147,6 +153,24 @@ class DistributedFilter:
         # train_fusion=individual: the numbers learned by the nodes alone, tracked with the configured fusion
         return model, obs, (fusion if train_fusion is self.fusion else self.fusion)
 
+    def _calibrate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, ctx, seed: int, learner):
+        """learner=calibrate: the motion model learns as it does alone (an offline model fits offline, the parts
+        that learn online learn on the training episodes, Algorithm 1), then the scales of Q and/or R are fitted to
+        the training measurements, each node alone (:mod:`dslearn.learning.calibrate`); the parts with the scales."""
+        if self.model.learns_offline:
+            self.model.fit_offline(train.states, ctx.dt, seed=seed)
+        if learner.learnable:
+            learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
+        meas = train.measurements
+        alone = make_fusion("individual", torch.as_tensor(self.fusion.weights), self.fusion.iterations)
+        init = initial_belief(meas, network, ctx.dt, alone, scenario.area, self.prior_pos_std, self.prior_vel_std)
+        cal = self.learner.run(self.model, self.observation, meas, init, ctx, predict_step=self.predict)
+        self.learned = cal.summary()
+        _LOG.info("learner=calibrate: %s", self.learned)
+        model = self.model if cal.q_scale == 1.0 else scaled_model(self.model, cal.q_scale)
+        obs = self.observation if cal.r_scale == 1.0 else ScaledSensor(self.observation, cal.r_scale)
+        return model, obs
+
     @property
     def label(self) -> str:
         omega = f" ω={self.fusion.omega_label}" if self.fusion.uses_omega and self.fusion.omega_label != "one" else ""
@@ -180,6 +204,9 @@ class DistributedFilter:
 
         learner = online(model, obs, fusion)
         kind = self.learner.name
+        if kind == "calibrate":
+            model, obs = self._calibrate(scenario, network, train, ctx, seed, learner)
+            learner = online(model, obs, fusion)  # tracks with the configured fusion and the scaled noises
         if kind == "backprop":
             model, obs, fusion = self._backprop(scenario, network, train, ctx, seed, learner)
             learner = online(model, obs, fusion)
@@ -204,6 +231,7 @@ def natural_learner(model: MotionModel, observation: ObservationModel):
 def allowed_learners(model: MotionModel, observation: ObservationModel) -> tuple[str, ...]:
     """The learners the distributed filter can use with these parts (the natural one first)."""
     bp = ("backprop",) if backprop_misfit(model, observation) is None else ()
+    bp += ("calibrate",) if calibrate_misfit(observation, fit=("q",)) is None else ()
     if model.learns_offline:
         return ("offline", *bp)
     if model.learnable or observation.learnable:
