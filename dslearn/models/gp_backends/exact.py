@@ -11,7 +11,10 @@ same length ``n`` (every node appends one example per step), so every operation 
 batched tensor operation over nodes. All ``Dy`` outputs share one kernel (independent
 outputs, as in Yu et al. Section IV-A). Points can be appended as *invalid* (a node had
 nothing to learn from): they are kept as decoupled unit rows of the factor and contribute
-exactly nothing to predictions.
+exactly nothing to predictions. While no node holds a valid point (a field of sensors whose learning gate
+has admitted nothing yet, e.g. Liu's 200 sensors), every prediction is the prior and an append only writes
+its unit row: both skip the ``O(S n^2)`` passes over the factor, with the same numbers, bit for bit
+(:attr:`OnlineGP.skip_void`).
 """
 
 from __future__ import annotations
@@ -110,6 +113,10 @@ class OnlineGP(PriorMean, nn.Module):
     #: form; one point per node per append, so :meth:`reserve` can allocate the buffers at once
     supports_belief = True
     grows_per_append = True
+    #: while no node holds a valid point, :meth:`predict` returns the prior and :meth:`append` writes the unit row
+    #: of an invalid point without the passes over the factor (CPU: the check is a host read; the numbers are
+    #: those of the full passes, bit for bit, tested); False: always the full passes
+    skip_void = True
 
     def __init__(
         self,
@@ -150,6 +157,7 @@ class OnlineGP(PriorMean, nn.Module):
         self.inverse = factor == "inverse" or (
             factor == "auto" and self.device_.type == "cpu" and inverse_factor.HAVE_KERNEL)
         self.n = 0
+        self._any_valid = False  # whether some node may hold a valid point (conservative: once True, stays)
         self.clamped = torch.zeros((), dtype=torch.long, device=self.device_)  # clamped diagonals (CUDA)
         self._snapshot_hypers()
         self._streaming = True  # predict at one point then append there (Algorithm 1): solve both at once
@@ -333,8 +341,16 @@ class OnlineGP(PriorMean, nn.Module):
         last, bvec = self._last, None
         reuse = n > 0 and last is not None and last[2] == n and _same_input(last[0], xs, last[3])
         if reuse:
-            l, bvec = last[1], last[4]  # the solves done by predict() at this very input
             self._streaming, self._pending = True, False
+        if self._void() and not bool(valid.any()):  # nothing valid, before or now: only the unit row
+            self._append_void(n)
+            return
+        if self.device_.type != "cpu" or bool(valid.any()):
+            self._any_valid = True
+        if reuse and last[1] is None:  # predicted while void (no solves kept): this append does them
+            reuse = False
+        if reuse:
+            l, bvec = last[1], last[4]  # the solves done by predict() at this very input
         if n == 0:
             l = x.new_zeros(s, 0)
         elif self.inverse and bvec is None:  # no paired pass to reuse: one pass gives both
@@ -383,6 +399,28 @@ class OnlineGP(PriorMean, nn.Module):
         self._alpha = self.A[:, : n + 1]
         self._last = None
 
+    def _void(self) -> bool:
+        """No node holds a valid point (and the shortcuts are on, on the CPU)."""
+        return self.skip_void and not self._any_valid and self.device_.type == "cpu"
+
+    def _append_void(self, n: int) -> None:
+        """Append an invalid point at every node while no node holds a valid one: row ``n`` as the full update
+        writes it (every solve there is of a zero right-hand side: zero input, residual, alpha and ``V`` entries,
+        off-diagonal factor entries zero, ``-0.0`` in the inverse factor, unit diagonal), in ``O(S n)``."""
+        self.alpha  # as the full update: alpha of the current data cached first
+        self.A[:, n] = 0.0
+        if n > 0:
+            self.L[:, n, :n] = -0.0 if self.inverse else 0.0
+        self.L[:, n, n] = 1.0
+        self.X[:, n] = 0.0
+        self._cache_inputs(n, n + 1)
+        self.R[:, n] = 0.0
+        self.V[:, n] = 0.0
+        self.mask[:, n] = False
+        self.n = n + 1
+        self._alpha = self.A[:, : n + 1]
+        self._last = None
+
     def _solve_lower(self, rhs: Tensor) -> Tensor:
         """``L^{-1} rhs`` for ``rhs (S, n, k)``: a solve through the full buffer (rows past n are
         identity), or a product with the inverse factor."""
@@ -421,6 +459,7 @@ class OnlineGP(PriorMean, nn.Module):
     def reset(self) -> None:
         """Forget all data."""
         self.n = 0
+        self._any_valid = False
         self._alloc(self.X.shape[1])
 
     # the data protocol: what code outside the GP may do with its data set ------------------
@@ -441,6 +480,7 @@ class OnlineGP(PriorMean, nn.Module):
         self.R[:, :n] = y.to(self.X) if residual else y.to(self.X) - self.prior_mean(xs)
         self.mask[:, :n] = True if valid is None else valid.to(self.mask.device)
         self.n = n
+        self._any_valid = self.device_.type != "cpu" or bool(self.mask[:, :n].any())
         self.refactorize()
 
     def data(self) -> tuple[Tensor, Tensor, Tensor]:
@@ -527,6 +567,12 @@ class OnlineGP(PriorMean, nn.Module):
             self._streaming = self._pending = False
         if n == 0:
             return mean, (kxx.clone() if variance else None), jac
+        if self._void():  # every point invalid: k_* = 0, so the prior (the full pass's numbers, bit for bit)
+            if variance and nq == 1:  # what the full pass leaves for the append at this input (without its solves)
+                self._pending = self._streaming
+                self._last = (x, None, n, x._version, None)
+            # copies, as the full pass returns new tensors (the identity mean is a view of x)
+            return mean.clone(), (kxx.clone() if variance else None), (None if jac is None else jac.clone())
         X = self.X[:, :n]
         ks = self._cross(x)  # (S, n, N)
         ls2 = (self._ls**2).reshape(-1, 1, 1, 1)
