@@ -159,3 +159,14 @@ def test_one_seed_one_unit_has_no_interval_and_no_tie():
     assert vals.loc["a", "rmse_mean"] == 1.0 and math.isnan(vals.loc["a", "rmse_lo"])
     assert bool(vals.loc["a", "tied"]) and not bool(vals.loc["b", "tied"]) and vals.loc["b", "rank"] == 2
     assert rep.cell_text(vals.reset_index().iloc[0]) == "**1.00**"
+
+
+def test_a_single_run_folder_is_labelled_by_its_overrides(tmp_path):
+    rows = _rows("ekf a", "yu", A)
+    (tmp_path / "meta.json").write_text(json.dumps({"overrides": ["task=matrix", "method=ekf_a", "learner=none",
+                                                                  "scenario=yu_two_agents", "task.seeds=2"]}))
+    vals = rep.matrix_values(pd.DataFrame(rows), tmp_path)
+    assert list(vals["method"]) == ["ekf_a learner=none"] and list(vals["scenario"]) == ["yu_two_agents"]
+    assert list(vals["method_label"]) == ["ekf a"] and list(vals["scenario_name"]) == ["yu"]
+    assert rep.option_labels(["filter=ukf", "model=lin", "consensus=ci", "scenario=liu_s1", "seed=3"]) == (
+        "filter=ukf model=lin consensus=ci", "liu_s1")

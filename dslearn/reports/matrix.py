@@ -199,10 +199,18 @@ def option_labels(lines) -> tuple[str | None, str | None]:
     return (" ".join(parts) or None), opts.get("scenario")
 
 
-def _label_maps(results: pd.DataFrame, cells: pd.DataFrame | None) -> dict:
-    """``{(method label, scenario name): (row option, column option)}`` from the sweep's records or the gathered
-    table's ``ov.*`` columns."""
+def _label_maps(results: pd.DataFrame, cells: pd.DataFrame | None, run_dir: Path | None = None) -> dict:
+    """``{(method label, scenario name): (row option, column option)}`` from the sweep's records, the gathered
+    table's ``ov.*`` columns or a single run's ``meta.json`` (its overrides)."""
     out = {}
+    one = len(results[["method", "scenario"]].drop_duplicates()) == 1
+    if run_dir is not None and one and (run_dir / "meta.json").is_file():  # a single run's folder
+        try:
+            lines = json.loads((run_dir / "meta.json").read_text(encoding="utf-8")).get("overrides") or []
+        except (OSError, ValueError, AttributeError):
+            lines = []
+        key = (str(results["method"].iloc[0]), str(results["scenario"].iloc[0]))
+        out[key] = option_labels(lines)
     if cells is not None and "overrides" in cells.columns:
         for c in cells.to_dict("records"):
             lines = str(c.get("overrides") or "").split()
@@ -246,7 +254,7 @@ def matrix_values(results: pd.DataFrame, root: Path | None = None) -> pd.DataFra
     cells = _read_cells(sweep, CELLS_FILE)
     if cells is None:  # no sweep record: the skipped list alone, where there is one
         cells = _read_cells(sweep, SKIPPED_FILE)
-    labels = _label_maps(results, cells)
+    labels = _label_maps(results, cells, sweep)
     rows = []
     have = {(m, s): i for i, (m, s) in enumerate(zip(vals["method_label"], vals["scenario_name"]))}
     used = set()
@@ -446,7 +454,7 @@ def plot_matrix(values: pd.DataFrame, path: Path) -> Path:
             ax.plot(r["rmse_mean"], i, "o", ms=5, mec=colour, mfc=colour if (best or tied) else "white")
         ax.set_xscale("log")
         ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
-        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: sig(x, 2)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:.4g}"))
         ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_title(_column_head(values, s), fontsize=9)
         ax.set_xlabel("RMSE (95 % interval)", fontsize=8)
