@@ -15,10 +15,10 @@ either: the sweeper says so on stderr and in its log, ``dslearn-run`` exits 1 af
 0, 1, ... in the sweep's order, so every launcher runs the same jobs and a resumed sweep (``resume=true``) numbers
 them alike. ``dslearn-run``'s up-front check applies the same function (the sweeper's ``select`` key).
 """
-import os
 
 
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Optional, Sequence
@@ -82,10 +82,6 @@ class MatrixSweeper(BasicSweeper):
                  select: str = SELECT) -> None:
         super().__init__(max_batch_size=max_batch_size, params=params)
         self.select = select
-        from dslearn.studies.matrix import plan_text  # the cells, seeds and the estimated time, before any job
-
-        jobs = self.config.hydra.launcher.get("n_jobs", 1)
-        log.info(plan_text(records, self.config.task, (os.cpu_count() or 1) if jobs in (None, -1) else int(jobs)))
         self._composed: set[tuple[str, ...]] = set()
 
     def split_arguments(self, overrides, max_batch_size):  # noqa: D102  (BasicSweeper.sweep calls it on self)
@@ -112,6 +108,10 @@ class MatrixSweeper(BasicSweeper):
 
             say_failed(failed, sweep_dir / CELLS_FILE)
             matrix.FAILED_CELLS.extend(failed)  # dslearn-run exits 1 after the sweep's other jobs
+        from dslearn.studies.matrix import plan_text  # the cells, seeds and the estimated time, before any job
+
+        jobs = self.config.hydra.launcher.get("n_jobs", 1)
+        log.info(plan_text(records, self.config.task, (os.cpu_count() or 1) if jobs in (None, -1) else int(jobs)))
         if not kept:
             return []
         n = len(kept) if max_batch_size in (None, -1) else int(max_batch_size)
