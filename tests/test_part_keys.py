@@ -59,8 +59,8 @@ CONTEXTS = {"yu": ["task=yu"], "yu_faults": ["experiment=yu_faults"], "ethucy_tr
 #: omega; the distributed filter's learning gate only where something learns online (not with LIN, the social force,
 #: the LSTMs, nor with learner=none | offline and the GP); the GP's refit settings only where it learns online and
 #: refits (every GP option has fit_every=0), its noise fading only with noise=adaptive; Liu's Newton settings under
-#: Adam; backprop's model step size only where it learns the model; the links (network.edges) with a fusion that
-#: uses none. A key of another group counts where the option
+#: Adam; the links (network.edges) with a fusion that uses none. (learner=backprop refuses a model_lr without
+#: learn: [model] itself, at construction: tests/test_backprop_models.py.) A key of another group counts where the option
 #: makes it unread (against the same context without the option).
 _GP = ("gp", "gp_adaptive", "gp_cv", "gp_increment", "gp_increment_rbcm", "gp_rbcm", "gp_sgpr", "gp_ssgp", "gp_window")
 _NO_ONLINE = ("lin", "sfm", "sfm_fit", "lstm", "social_lstm")
@@ -82,7 +82,6 @@ def _refused_table() -> set[tuple[str, str, str]]:
     for opt in ("none", "offline"):
         out |= {("matrix", f"learner={opt}", k) for k in ("filter.learn_gate_std", "model.fit_every")}
     out |= {("matrix", "learner=online_hyperparameters", f"learner.hyper.{k}") for k in ("tol", "max_iters")}
-    out.add(("matrix", "learner=backprop", "learner.model_lr"))
     return out
 
 
@@ -191,9 +190,9 @@ def _reads_group(cfg: DictConfig, group: str, option: str) -> bool:
     except Exception:  # noqa: BLE001 - this task / engine does not take the option
         return False
     if group == "learner":  # the engine's own learners only
-        from dslearn.schemas.base import part_class
+        from hydra.utils import get_object
 
-        takes = getattr(part_class(cfg.filter._target_), "learners", None)
+        takes = getattr(get_object(str(cfg.filter._target_)), "learners", None)
         return takes is None or option in takes
     return True
 
@@ -279,11 +278,13 @@ def test_declared_keys_exist(hydra_ctx):
 
 
 #: every task's own keys: (context, key) refused with its default configuration (each task's ``unused``)
-TASK_REFUSED = {("liu_dgpt", "task.hyper.tol"), ("liu_dgpt", "task.hyper.max_iters")}
+TASK_REFUSED = {("liu_dgpt", "task.hyper.tol"), ("liu_dgpt", "task.hyper.max_iters"),
+                *{("ethucy_tracking", f"task.{k}") for k in ("data_sizes", "seeds", "synthetic")},
+                *{("ethucy_tracking/data_size", f"task.{k}") for k in ("train_episodes", "plot_episodes")}}
 TASK_CONTEXTS = {"yu": ["task=yu"], "yu_faults": ["experiment=yu_faults"], "liu_dgpt": ["experiment=liu_table1"],
                  "jiang_fg": ["experiment=jiang_fg"], "braga_tbn": ["experiment=braga_tbn"],
                  "ethucy_forecast": ["experiment=ethucy_forecast"], "ethucy_tracking": ["experiment=real_tables"],
-                 "matrix": ["task=matrix"], "gp_bayes_filters": ["experiment=gp_bayes_filters"]}
+                 "ethucy_tracking/data_size": ["experiment=gp_vs_lstm"], "matrix": ["task=matrix"], "gp_bayes_filters": ["experiment=gp_bayes_filters"]}
 
 
 def test_every_task_key(hydra_ctx):
@@ -352,9 +353,6 @@ EXAMPLES = [
     (["experiment=ethucy_forecast", "task.predictors=[cv,gp]", "task.lstm.epochs=3"],
      "task.lstm is not used by task=ethucy_forecast with task.predictors=['cv', 'gp'] (no lstm or social_lstm); "
      "remove task.lstm.epochs=3"),
-    (["task=matrix", "method=ekf_lin_hybrid_backprop", "learner.model_lr=0.001"],
-     "learner.model_lr is not used by learner=backprop (learner.learn=['q', 'r', 'weights', 'omega'] has no model: "
-     "the motion model's own parameters are not learned); remove learner.model_lr=0.001"),
     (["task=matrix", "method=ekf_sfm_hybrid_backprop", "learner=none"],
      "method=ekf_sfm_hybrid_backprop sets learner.learn; learner=none takes no learn: remove learner=none (the "
      "preset's learner=backprop), or choose the parts without the preset: filter=default model=sfm "

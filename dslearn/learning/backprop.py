@@ -741,15 +741,6 @@ class BackpropLearning:
     #: :func:`dslearn.schemas.base.online_learning`)
     config_online_parts: ClassVar[tuple] = ("model",)
 
-    @staticmethod
-    def config_unused(cfg, node) -> dict:
-        """``model_lr`` where ``learn`` holds no ``model`` (:func:`dslearn.schemas.base.unread_keys`)."""
-        learn = node.get("learn")
-        if "model_lr" in node and learn is not None and "model" not in [str(x) for x in learn]:
-            return {"model_lr": f"learner.learn={[str(x) for x in learn]} has no model: the motion model's own "
-                                "parameters are not learned"}
-        return {}
-
     epochs: int = 30
     lr: float = 0.05
     batch: Any = None

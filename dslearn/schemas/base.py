@@ -122,10 +122,10 @@ class TaskSpec:
     ``uses``: the root groups (:data:`ROOT_GROUPS`, :data:`PRESET_GROUPS`) the task reads, or keys under one it
     reads alone (``"consensus.iterations"``); a function of the composed config where that depends on the task's
     own keys. ``instead``: per root group it does not use, what it uses instead (for the message).
-    ``unused``: a function of the composed config giving task keys (or keys of a root group it reads) this
-    configuration does not read (``{"task.aggregations": "why"}``). ``parts``: the root groups whose option the
-    task builds as the part it names (``_target_``), so that the part's own declaration of the keys it reads
-    applies (:func:`unread_keys`). Overriding any key not read is refused by :func:`check_overrides`."""
+    ``unused``: a function of the composed config giving task keys this configuration does not read
+    (``{"task.aggregations": "why"}``). ``parts``: the root groups whose option the task builds as the part it
+    names (``_target_``), so that the part's own declaration of the keys it reads applies (:func:`unread_keys`).
+    Overriding any key not read is refused by :func:`check_overrides`."""
 
     name: str
     schema: type
@@ -196,7 +196,7 @@ def check_overrides(cfg: DictConfig, overrides) -> None:
                 raise ConfigError(f"task={spec.name} uses only {', '.join(inside)} of the root group {head}{tail}; "
                                   f"remove {line}")
             raise ConfigError(f"task={spec.name} does not use the root group {head}{tail}; remove {line}")
-        if (head == "task" or head in ROOT_GROUPS) and spec.unused is not None:
+        if head == "task" and spec.unused is not None:
             if unused is None:
                 unused = spec.unused(cfg) or {}
             for k, why in unused.items():

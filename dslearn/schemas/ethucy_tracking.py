@@ -291,5 +291,16 @@ INSTEAD = {
     "data": "its episodes are task.train_episodes and task.test_episodes (task.data_sizes for data_size)",
 }
 
-register_task("ethucy_tracking", EthucyTrackingTask, check, uses=uses, instead=INSTEAD,
+def unused(cfg: DictConfig) -> dict[str, str]:
+    """The task keys the chosen ``task.protocol`` does not read (an override of them is refused): the data-size
+    curves' sizes, seeds and synthetic source with ``tables``; the tables' training episodes and stored trajectories
+    with ``data_size`` (its training episodes are ``task.data_sizes``)."""
+    if str(cfg.task.protocol) == "tables":
+        why = "with task.protocol=tables (Tables III-IV: task.train_episodes on each scene, seed once)"
+        return {"task.data_sizes": why, "task.seeds": why, "task.synthetic": why}
+    why = "with task.protocol=data_size (its training episodes are task.data_sizes; no stored trajectories)"
+    return {"task.train_episodes": why, "task.plot_episodes": why}
+
+
+register_task("ethucy_tracking", EthucyTrackingTask, check, uses=uses, instead=INSTEAD, unused=unused,
               parts=("filter", "observation", "model"))  # not consensus: its CM fusion reads every key
