@@ -32,13 +32,19 @@ spanning two steps of the grid before. With the defaults (9 points, 4 decades, 3
 to 1/64 of a decade (4 %) over 8 decades, in 4 passes of 81 filters per (node, episode) pair with both scales.
 Derivative-free, so the same code serves every motion model and prediction step (the LSTM's linearisation,
 the UKF's sigma points) and cannot be trapped by a bad gradient; the grid's point at the hand-set numbers gives
-the likelihood before calibration (``nll_hand``).
+the likelihood before calibration (``nll_hand``). Each stage keeps, of the points whose summed NLL is within
+``learner.tolerance`` (1.92: the 95 % likelihood-ratio interval of one parameter) of the smallest found, the one
+nearest the hand-set numbers: a scale the data do not determine stays where it was set instead of drifting to the
+grid's edge (LIN's ``Q = sigma^2 I`` has position noise, so with a large ``s_q`` the likelihood can be flat in
+``s_r`` all the way down to ``R = 0``, an information filter with infinite trust in its sensors).
 
 What the families do with it (``dslearn.methods.distributed.DistributedFilter``): the motion model first learns
 as it does alone (the LSTM's offline fit, the GP's online learning on the training episodes, Algorithm 1), then
-the scales are fitted on the same training episodes, then the test episodes are tracked with the configured
-fusion and the scaled noises. For the GP and the LSTM the innovations are in-sample (the model has learned from
-these episodes), so ``s_q`` can come out smaller than held-out data would ask for.
+the scales are fitted on the training episodes, then the test episodes are tracked with the configured fusion
+and the scaled noises. A GP learns online from the first training episodes, the scales are fitted on the held-out
+rest (``learner.holdout``), then it learns those too (so it is the hand-set method's GP): fitted on the episodes it
+learned from, its small variance there would ask for too small an ``s_q``. The LSTM's innovations are in-sample
+(its weights are fitted to the training tracks; its own Q already comes from held-out residuals).
 """
 
 from __future__ import annotations
@@ -205,13 +211,15 @@ def individual_nll(model: MotionModel, obs: ObservationModel, ep: Measurements, 
 @dataclass
 class Calibration:
     """The fitted scales and what the fit saw: ``q_scale``, ``r_scale`` (1 where not fitted), the mean NLL per
-    counted innovation at the fit (``nll``) and at the hand-set numbers (``nll_hand``), the number of counted
+    counted innovation at the fit (``nll``), the smallest on the grids (``nll_min``) and at the hand-set numbers
+    (``nll_hand``), the number of counted
     innovations (``terms``), of filters run per grid point (``filters``: (node, episode) pairs), of passes and
     the wall time."""
 
     q_scale: float = 1.0
     r_scale: float = 1.0
     nll: float = float("nan")
+    nll_min: float = float("nan")
     nll_hand: float = float("nan")
     terms: int = 0
     filters: int = 0
@@ -220,7 +228,8 @@ class Calibration:
     history: list = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
-        return {"q_scale": self.q_scale, "r_scale": self.r_scale, "nll": self.nll, "nll_hand": self.nll_hand,
+        return {"q_scale": self.q_scale, "r_scale": self.r_scale, "nll": self.nll, "nll_min": self.nll_min,
+                "nll_hand": self.nll_hand,
                 "terms": self.terms, "filters": self.filters, "passes": self.passes,
                 "seconds": round(self.seconds, 3)}
 
@@ -244,11 +253,14 @@ def _repeat(x: Tensor, g: int) -> Tensor:
 
 def calibrate(model: MotionModel, obs: ObservationModel, ep: Measurements, init: tuple[Tensor, Tensor],
               ctx: StepContext, *, fit=PARTS, predict_step=None, points: int = 9, decades: float = 4.0,
-              zooms: int = 3, shifts: int = 4, warmup: int = 2, max_batch: int = 20000) -> Calibration:
+              zooms: int = 3, shifts: int = 4, warmup: int = 2, tolerance: float = 1.92,
+              max_batch: int = 20000) -> Calibration:
     """Fit ``log10`` of the scales of ``fit`` (``q``: the process noise, ``r``: the sensors' noise) by the grid
     search of the module docstring; ``init``: every node's initial belief on ``ep`` (``(S, B, Dx)``,
     ``(S, B, Dx, Dx)``, the individual filter's); ``max_batch``: filters per pass at most (grid points x
-    packed pairs; a stage larger than this is run in chunks)."""
+    packed pairs; a stage larger than this is run in chunks); ``tolerance``: grid points whose summed NLL is within
+    this of the smallest found are as good, and the fit is the one nearest the hand-set numbers (1.92: the 95 %
+    likelihood-ratio interval of one parameter; 0: the maximum likelihood itself)."""
     t0 = time.perf_counter()
     fit = tuple(fit)
     mask = counted(ep.visible, warmup)
@@ -265,7 +277,7 @@ def calibrate(model: MotionModel, obs: ObservationModel, ep: Measurements, init:
     k = len(fit)
     centre = [0.0] * k
     half, moved, stage = float(decades), 0, 0
-    best_val, best_point = float("inf"), [0.0] * k
+    best_val = float("inf")
     while True:
         axis = [c + torch.linspace(-half, half, points, dtype=torch.float64) for c in centre]
         grid = torch.tensor(list(itertools.product(*[a.tolist() for a in axis])), dtype=torch.float64)  # (G, k)
@@ -290,15 +302,20 @@ def calibrate(model: MotionModel, obs: ObservationModel, ep: Measurements, init:
             hand = (grid.abs().sum(-1) < 1e-12).nonzero()
             if len(hand):
                 out.nll_hand = float(values[hand[0, 0]])
-        best = int(values.argmin())
-        out.history.append({"centre": list(centre), "half": half, "best": grid[best].tolist(),
-                            "nll": float(values[best])})
-        if float(values[best]) < best_val:
-            best_val = float(values[best])
-            best_point = grid[best].tolist()
-        idx = [axis[j].sub(grid[best, j]).abs().argmin().item() for j in range(k)]
+        best_val = min(best_val, float(values.min()))
+        # the points as likely as the best (within the likelihood-ratio tolerance): the one nearest the hand-set
+        # numbers (a direction the data do not determine keeps its hand-set value instead of drifting)
+        near = values <= best_val + float(tolerance) / out.terms
+        if not bool(near.any()):
+            near = values == values.min()
+        dist = torch.where(near, grid.pow(2).sum(-1), torch.full_like(values, float("inf")))
+        pick = int(dist.argmin())
+        point = grid[pick].tolist()
+        out.history.append({"centre": list(centre), "half": half, "pick": point, "nll": float(values[pick]),
+                            "nll_min": float(values.min())})
+        idx = [axis[j].sub(grid[pick, j]).abs().argmin().item() for j in range(k)]
         on_edge = any(i in (0, points - 1) for i in idx)
-        centre = list(best_point)
+        centre = list(point)
         if on_edge and moved < shifts and stage == 0:
             moved += 1
             continue
@@ -306,9 +323,9 @@ def calibrate(model: MotionModel, obs: ObservationModel, ep: Measurements, init:
             break
         stage += 1
         half = 2 * half / (points - 1)
-    out.nll = best_val
+    out.nll, out.nll_min = float(values[pick]), best_val
     for j, p in enumerate(fit):
-        setattr(out, f"{p}_scale", float(10.0 ** best_point[j]))
+        setattr(out, f"{p}_scale", float(10.0 ** point[j]))
     out.seconds = time.perf_counter() - t0
     return out
 
@@ -328,6 +345,12 @@ class CalibrateLearning:
         zooms: finer grids after the first (each spans two steps of the one before).
         shifts: how often the first grid may move to a best point on its edge.
         warmup: an innovation counts where the node also measured the target at the ``warmup`` steps before.
+        tolerance: grid points whose summed NLL is within this of the smallest are as good; the fit is the one
+            nearest the hand-set numbers (1.92: the 95 % likelihood-ratio interval of one parameter; 0: the
+            maximum likelihood itself).
+        holdout: for parts that learn online from the training episodes (the GPs): the share of them held out.
+            The parts learn from the others, the scales are fitted on the held-out ones, then the parts learn
+            those too (the same parts as the hand-set method's); 0: fitted on every episode after learning.
         max_batch: filters run at once (grid points x (node, episode) pairs); more are run in chunks.
     """
 
@@ -339,6 +362,8 @@ class CalibrateLearning:
     zooms: int = 3
     shifts: int = 4
     warmup: int = 2
+    tolerance: float = 1.92
+    holdout: float = 0.5
     max_batch: int = 20000
 
     def __post_init__(self) -> None:
@@ -357,6 +382,11 @@ class CalibrateLearning:
         if isinstance(d, bool) or not isinstance(d, (int, float)) or not 0 < d < 30:
             raise ConfigError(f"learner.decades={d!r} must be a number in (0, 30)")
         self.decades = float(d)
+        for key, high in (("tolerance", float("inf")), ("holdout", 1.0)):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < high:
+                raise ConfigError(f"learner.{key}={v!r} must be a number >= 0" + ("" if high == float("inf") else " and < 1"))
+            setattr(self, key, float(v))
 
     @property
     def label(self) -> str:
@@ -367,7 +397,7 @@ class CalibrateLearning:
             ctx: StepContext, predict_step=None) -> Calibration:
         return calibrate(model, obs, ep, init, ctx, fit=self.fit, predict_step=predict_step, points=self.points,
                          decades=self.decades, zooms=self.zooms, shifts=self.shifts, warmup=self.warmup,
-                         max_batch=self.max_batch)
+                         tolerance=self.tolerance, max_batch=self.max_batch)
 
 
 def calibrate_misfit(observation: ObservationModel, predict=None, fit=PARTS) -> str | None:

@@ -155,17 +155,23 @@ class DistributedFilter:
 
     def _calibrate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, ctx, seed: int, learner):
         """learner=calibrate: the motion model learns as it does alone (an offline model fits offline, the parts
-        that learn online learn on the training episodes, Algorithm 1), then the scales of Q and/or R are fitted to
-        the training measurements, each node alone (:mod:`dslearn.learning.calibrate`); the parts with the scales."""
+        that learn online learn on the training episodes, Algorithm 1), and the scales of Q and/or R are fitted to
+        the training measurements, each node alone (:mod:`dslearn.learning.calibrate`; parts that learn online
+        learn from the first episodes, the scales are fitted on the held-out rest, ``learner.holdout``, which they
+        then learn from too); the parts with the scales."""
         if self.model.learns_offline:
             self.model.fit_offline(train.states, ctx.dt, seed=seed)
-        if learner.learnable:
-            learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
-        meas = train.measurements
+        n = len(train)
+        held = min(int(round(self.learner.holdout * n)), n - 1) if learner.learnable and n > 1 else 0
+        if learner.learnable:  # from the first episodes; the held-out ones after the fit (the same parts in the end)
+            learner.run(train.measurements.select(slice(0, n - held)), [n - held], lambda k: pd.DataFrame())
+        meas = train.measurements.select(slice(n - held, n)) if held else train.measurements
         alone = make_fusion("individual", torch.as_tensor(self.fusion.weights), self.fusion.iterations)
         init = initial_belief(meas, network, ctx.dt, alone, scenario.area, self.prior_pos_std, self.prior_vel_std)
         cal = self.learner.run(self.model, self.observation, meas, init, ctx, predict_step=self.predict)
-        self.learned = cal.summary()
+        if held:
+            learner.run(train.measurements.select(slice(n - held, n)), [held], lambda k: pd.DataFrame())
+        self.learned = {**cal.summary(), "held_out_episodes": held}
         _LOG.info("learner=calibrate: %s", self.learned)
         model = self.model if cal.q_scale == 1.0 else scaled_model(self.model, cal.q_scale)
         obs = self.observation if cal.r_scale == 1.0 else ScaledSensor(self.observation, cal.r_scale)
