@@ -48,7 +48,7 @@ Workloads (``dslearn-bench [--quick] [WORKLOAD ...]``; none = all):
 Outputs in ``--out`` (default: a new folder ``bench-results/<date>_<time>`` in the current
 directory, so the committed ``benchmarks/`` tables are only rewritten when asked for with
 ``--out benchmarks``): ``bench.csv``, ``bench.md`` (with machine info), ``gp_step_cost.png``.
-``--quick`` runs a reduced set in a few minutes (without ``studies`` and ``fantasy`` unless named).
+``--quick`` runs a reduced set in a few minutes (without ``studies``, ``fantasy`` and ``matrix`` unless named).
 """
 
 from __future__ import annotations
