@@ -303,7 +303,7 @@ def test_a_real_matrix_sweep_and_its_report(tmp_path):
     sweep = tmp_path / "sweep"
     env = {**os.environ, "CI": "1"}
     cmd = [str(BIN / "dslearn-run"), "-m", "experiment=matrix", "method=ekf_lin_hybrid,ekf_sfm_hybrid",
-           "scenario=yu_two_agents,liu_s1", "task.train_episodes=1", "task.test_episodes=2",
+           "scenario=yu_two_agents,liu_s1", "task.train_episodes=1", "task.test_episodes=2", "task.seeds=1",
            "hydra/launcher=basic", f"hydra.sweep.dir={sweep}"]
     r = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
