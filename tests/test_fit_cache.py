@@ -131,3 +131,18 @@ def test_the_fitted_social_force_round_trips(cache):
         assert torch.equal(getattr(a, name), getattr(b, name))
     c = fit_cache.fit_offline_cached(fresh(), states[:1], 0.4, 0)
     assert c.fit_cache["source"] == "fit" and c.fit_cache["key"] != a.fit_cache["key"]
+
+
+def test_the_key_covers_the_code_that_fits(monkeypatch):
+    """An edited fit (the model's module or a base's) is a new key: the source files are part of it."""
+    from pathlib import Path
+
+    names = {f.name for f in fit_cache.code_files(_model())}
+    assert {"lstm.py", "base.py"} <= names
+    sfm = {f.name for f in fit_cache.code_files(FittedSocialForce([[0.0, 0.0]], 1.0, 0.0, 1.0, 0.1))}
+    assert {"sfm_fit.py", "social_force.py", "base.py"} <= sfm
+    states = torch.randn(3, 8, 8, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    key = fit_cache.fit_key(_model(), states, 0.4, 0)
+    real = Path.read_bytes
+    monkeypatch.setattr(Path, "read_bytes", lambda self: real(self) + (b"# edited" if self.name == "lstm.py" else b""))
+    assert fit_cache.fit_key(_model(), states, 0.4, 0) != key

@@ -6,10 +6,11 @@ learner, which starts from the offline fit), train the SAME LSTM on the same sce
 inputs loads it instead, bit for bit what a fresh fit gives.
 
 The key is the SHA-256 of everything that changes the fit, never a preset's name: a format tag, the dslearn and
-torch versions, the model's class and its :meth:`fit_cache_settings` (for the LSTM its network, offline schedule,
-process-noise rule, dtype and device; for the fitted social force its grid and refinement), the training states'
-dtype, shape and bytes, ``dt`` and the seed. The model supplies the rest of the protocol: ``fitted_state()``
-(tensors and plain values only) and ``load_fitted_state(state)``.
+torch versions, the source of the modules that define the model's class and its bases (:func:`code_files`: an
+edited fit is fitted again), the model's class and its :meth:`fit_cache_settings` (for the LSTM its network,
+offline schedule, process-noise rule, dtype and device; for the fitted social force its grid and refinement), the
+training states' dtype, shape and bytes, ``dt`` and the seed. The model supplies the rest of the protocol:
+``fitted_state()`` (tensors and plain values only) and ``load_fitted_state(state)``.
 
 Where: the data cache's folder (:func:`dslearn.data.cache.cache_dir`: ``$DSLEARN_CACHE_DIR``, default
 ``~/.cache/dslearn``; ``off`` disables it), subfolder ``offline_fits``. An entry is written atomically (temporary
@@ -48,6 +49,19 @@ KIND = "offline_fits"
 log = logging.getLogger(__name__)
 
 
+def code_files(model: Any) -> list[Path]:
+    """The source files of dslearn's modules that define ``model``'s class and its bases (their code is the fit)."""
+    import sys
+
+    out = []
+    for cls in type(model).__mro__:
+        mod = sys.modules.get(cls.__module__)
+        f = getattr(mod, "__file__", None)
+        if cls.__module__.startswith("dslearn.") and f and Path(f) not in out:
+            out.append(Path(f))
+    return out
+
+
 def fit_key(model: Any, trajectories: Tensor, dt: float, seed: int) -> str:
     """SHA-256 (hex) of what changes the fit of ``model`` on ``trajectories`` (see the module's docstring)."""
     settings = model.fit_cache_settings()
@@ -55,6 +69,8 @@ def fit_key(model: Any, trajectories: Tensor, dt: float, seed: int) -> str:
                       *(f"{k}={settings[k]!r}" for k in sorted(settings)), f"dt={float(dt)!r}", f"seed={int(seed)}",
                       f"states={trajectories.dtype}{tuple(trajectories.shape)}"])
     h = hashlib.sha256(head.encode())
+    for f in code_files(model):
+        h.update(b"\0" + f.name.encode() + b"\0" + f.read_bytes())
     h.update(b"\0")
     h.update(trajectories.detach().to("cpu").contiguous().numpy().tobytes())
     return h.hexdigest()
