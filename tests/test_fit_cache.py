@@ -146,3 +146,14 @@ def test_the_key_covers_the_code_that_fits(monkeypatch):
     real = Path.read_bytes
     monkeypatch.setattr(Path, "read_bytes", lambda self: real(self) + (b"# edited" if self.name == "lstm.py" else b""))
     assert fit_cache.fit_key(_model(), states, 0.4, 0) != key
+
+
+def test_a_cache_folder_that_cannot_be_written_only_costs_the_cache(tmp_path, monkeypatch, caplog):
+    blocker = tmp_path / "a file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("DSLEARN_CACHE_DIR", str(blocker / "cache"))  # its parent is a file: nothing can be written
+    states = torch.randn(3, 8, 8, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    with caplog.at_level(logging.WARNING, logger="dslearn.learning.fit_cache"):
+        m = fit_cache.fit_offline_cached(_model(), states, 0.4, 0)
+    assert m.fit_cache["source"] == "fit" and m.fit_info["train_loss"] > 0
+    assert "cannot lock cache entry" in caplog.text and "cannot write cache entry" in caplog.text

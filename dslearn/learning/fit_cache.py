@@ -115,8 +115,14 @@ def _locked(path: Path):
     except ImportError:  # pragma: no cover - not POSIX
         yield
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path.with_name(path.name + ".lock"), "a") as f:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        f = open(path.with_name(path.name + ".lock"), "a")
+    except OSError as e:  # a folder that cannot be written only costs the cache (and the lock)
+        log.warning("offline fit: cannot lock cache entry %s (%s); continuing without the lock", path.stem, e)
+        yield
+        return
+    with f:
         fcntl.flock(f.fileno(), fcntl.LOCK_EX)
         try:
             yield
