@@ -157,3 +157,11 @@ def test_a_cache_folder_that_cannot_be_written_only_costs_the_cache(tmp_path, mo
         m = fit_cache.fit_offline_cached(_model(), states, 0.4, 0)
     assert m.fit_cache["source"] == "fit" and m.fit_info["train_loss"] > 0
     assert "cannot lock cache entry" in caplog.text and "cannot write cache entry" in caplog.text
+
+
+def test_the_calibrating_learner_shares_the_fit(make_cfg, cache):
+    """learner=calibrate fits the offline model as the plain preset does (then scales Q and R): the same fit."""
+    _, plain, _ = _cell(make_cfg, "ekf_lstm_hybrid")
+    _, calibrated, d = _cell(make_cfg, "ekf_lstm_hybrid", "learner=calibrate")
+    assert calibrated.fit_cache == {"key": plain.fit_cache["key"], "source": "cache"}
+    assert d.counts == {"offline_fit_cache_hits": 1}

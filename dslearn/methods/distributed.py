@@ -159,8 +159,8 @@ class DistributedFilter:
         the training measurements, each node alone (:mod:`dslearn.learning.calibrate`; parts that learn online
         learn from the first episodes, the scales are fitted on the held-out rest, ``learner.holdout``, which they
         then learn from too); the parts with the scales."""
-        if self.model.learns_offline:
-            self.model.fit_offline(train.states, ctx.dt, seed=seed)
+        if self.model.learns_offline:  # the offline fit every preset of this model shares (the fit cache)
+            fit_offline_cached(self.model, train.states, ctx.dt, seed)
         n = len(train)
         held = min(int(round(self.learner.holdout * n)), n - 1) if learner.learnable and n > 1 else 0
         if learner.learnable:  # from the first episodes; the held-out ones after the fit (the same parts in the end)
