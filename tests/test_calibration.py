@@ -211,11 +211,13 @@ def test_settings_are_checked():
 
 
 REFUSED = [
-    (["method=adf_gp_hybrid"], "learner=calibrate: it scales the process noise that the EKF or UKF prediction step "
-                               "takes at the mean (filter=default|ukf), not filter=adf's", "allowed: learner=online|none"),
+    (["method=adf_gp_hybrid"], "learner=calibrate: it scales the process noise that the EKF or UKF prediction "
+                               "step takes at the mean (filter=default|ukf), not filter=adf's",
+     "allowed: learner=online|none"),
     (["method=ekf_gp_hybrid", "observation=gp"], "learner=calibrate: learner.fit=[r] scales the linear position "
                                                  "sensor's R", "allowed: learner=online|none"),
-    (["method=dgpt_rbcm", "scenario=liu_s1"], "learner=calibrate: Liu's DGPT", "allowed: learner=online_hyperparameters"),
+    (["method=dgpt_rbcm", "scenario=liu_s1"], "learner=calibrate: Liu's DGPT",
+     "allowed: learner=online_hyperparameters"),
     (["method=fg_ekf", "scenario=jiang"], "learner=calibrate: Jiang's EKF-FG", "allowed: learner=fg_identification"),
     (["method=rbpf_em", "scenario=braga"], "learner=calibrate: Braga", "allowed: learner=online_em"),
 ]

@@ -54,7 +54,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -377,7 +377,8 @@ class CalibrateLearning:
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ConfigError(f"learner.{key}={v!r} must be an integer >= {low}")
         if self.points % 2 == 0:
-            raise ConfigError(f"learner.points={self.points!r} must be odd (the hand-set numbers are the grid's centre)")
+            raise ConfigError(f"learner.points={self.points!r} must be odd (the hand-set numbers are the grid's "
+                              f"centre)")
         d = self.decades
         if isinstance(d, bool) or not isinstance(d, (int, float)) or not 0 < d < 30:
             raise ConfigError(f"learner.decades={d!r} must be a number in (0, 30)")
@@ -385,7 +386,8 @@ class CalibrateLearning:
         for key, high in (("tolerance", float("inf")), ("holdout", 1.0)):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < high:
-                raise ConfigError(f"learner.{key}={v!r} must be a number >= 0" + ("" if high == float("inf") else " and < 1"))
+                below = "" if high == float("inf") else " and < 1"
+                raise ConfigError(f"learner.{key}={v!r} must be a number >= 0{below}")
             setattr(self, key, float(v))
 
     @property
