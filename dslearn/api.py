@@ -27,7 +27,8 @@ def compose(*overrides: str):
     from hydra.core.global_hydra import GlobalHydra
 
     import dslearn.schemas  # noqa: F401  (the task schemas the configs name)
-    from dslearn.conf_paths import CONF_DIR, add_search_path, search_overrides
+    from dslearn.conf_paths import CONF_DIR
+    from dslearn.search_path import add_search_path, search_overrides
     from dslearn.run import parse_override
     from dslearn.schemas.core import validate_config
 

@@ -164,12 +164,13 @@ def build_parts(cfg: DictConfig, model_node: Any = None) -> Parts:
 def group_options(group: str, names, overrides: tuple[str, ...] = ()) -> dict[str, DictConfig]:
     """The config nodes of several options of one group (``{name: cfg.<group>}``), composed by Hydra
     with their defaults lists, as ``<group>=<name>`` would, from the package's config folder and the user's
-    ``hydra.searchpath`` folders (:func:`dslearn.conf_paths.search_overrides`). ``overrides`` apply to each (e.g.
+    ``hydra.searchpath`` folders (:func:`dslearn.search_path.search_overrides`). ``overrides`` apply to each (e.g.
     ``consensus.iterations=4``)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from dslearn.conf_paths import CONF_DIR, search_overrides  # (the task schemas the configs name are
+    from dslearn.conf_paths import CONF_DIR
+    from dslearn.search_path import search_overrides  # (the task schemas the configs name are
     # registered by the caller: the app, dslearn.api or a test imports dslearn.schemas)
 
     def _all() -> dict[str, DictConfig]:  # with the user's hydra.searchpath folders (their options too)

@@ -389,7 +389,7 @@ def _hydra_task(cfg: DictConfig) -> dict:
 
     hc = HydraConfig.get()
     if hc.get("searchpath"):  # the user's config folders count in this process too (a launcher's worker)
-        from dslearn.conf_paths import add_search_path
+        from dslearn.search_path import add_search_path
 
         add_search_path(list(hc.searchpath))
     out_dir = Path(hc.runtime.output_dir)
@@ -542,8 +542,8 @@ def _is_group(key: str) -> bool:
 
 
 def _user_search_dirs(value) -> list[Path]:
-    """The folders of a ``hydra.searchpath=[...]`` override (:func:`dslearn.conf_paths.user_search_dirs`)."""
-    from dslearn.conf_paths import user_search_dirs
+    """The folders of a ``hydra.searchpath=[...]`` override (:func:`dslearn.search_path.user_search_dirs`)."""
+    from dslearn.search_path import user_search_dirs
 
     return user_search_dirs(value)
 
@@ -988,7 +988,7 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
                         "to add, or key=a,b with -m to sweep")
         for o in parsed:  # user config folders first: their groups and options count in the checks below
             if o.key_or_group == "hydra.searchpath" and not o.is_delete():
-                from dslearn.conf_paths import add_search_path
+                from dslearn.search_path import add_search_path
 
                 add_search_path(o.value())  # and every composition below gets the same search path
         for o in parsed:
@@ -1014,7 +1014,7 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
                 groups = tuple(o.input_line for o in _parse_all(combos[0]) if _is_group_override(o))
                 seeded[groups] = master
 
-            from dslearn.conf_paths import search_overrides
+            from dslearn.search_path import search_overrides
 
             def _compose(ov):  # each job with the user's search path (Hydra applies it per composition)
                 key = tuple(ov)

@@ -398,6 +398,12 @@ def _check_method(option, cfg, world):
         assert list(cfg.learner.learn) == ["model", *q, "r", "weights", "omega"]
         assert cfg.learner.model_lr == (1e-4 if "_lstm_" in option else None)
         return
+    if option.endswith("_calibrated"):  # a preset's parts, a scale of Q and of R fitted to the training innovations
+        base = option.removesuffix("_calibrated")
+        assert {k: cfg[k] for k in ("filter", "model", "observation", "consensus")} == \
+            {k: _compose(f"method={base}")[k] for k in ("filter", "model", "observation", "consensus")}
+        assert cfg.learner == _compose("learner=calibrate").learner  # the learner's own settings, unchanged
+        return
     if option in ("fg_ekf", "rbpf_em"):  # Jiang's / Braga's method: its filter option (and the statistics part)
         assert cfg.filter == _compose(f"filter={option}").filter
         assert option == "fg_ekf" or cfg.consensus == _compose("consensus=statistics").consensus
@@ -421,7 +427,8 @@ def _check_method(option, cfg, world):
 
 LEARNER_CLASSES = {"online": "OnlineLearning", "offline": "OfflineLearning", "none": "NoLearning",
                    "online_em": "OnlineEM", "online_hyperparameters": "OnlineHyperparameters",
-                   "fg_identification": "FactorGraphIdentification", "backprop": "BackpropLearning"}
+                   "fg_identification": "FactorGraphIdentification", "backprop": "BackpropLearning",
+                   "calibrate": "CalibrateLearning"}
 
 
 def _check_learner(option, cfg, world):
@@ -445,6 +452,9 @@ def _check_learner(option, cfg, world):
         assert set(cfg.learner) == {"_target_", "epochs", "lr", "batch", "loss", "learn", "train_fusion", "model_lr"}
         assert (obj.epochs, obj.lr, obj.batch, obj.loss, obj.learn, obj.train_fusion, obj.model_lr) == (
             30, 0.05, None, "innovation", ["q", "r", "weights", "omega"], "consensus", None)
+    elif option == "calibrate":  # its settings (conf/learner/calibrate.yaml) as the learner holds them
+        assert (obj.fit, obj.points, obj.decades, obj.zooms, obj.shifts, obj.warmup, obj.tolerance, obj.holdout,
+                obj.max_batch) == (["q", "r"], 9, 4.0, 3, 4, 2, 1.92, 0.5, 20000)
     else:  # no settings of its own
         assert set(cfg.learner) == {"_target_"}
 
@@ -458,7 +468,8 @@ EXPECTED_OPTIONS = {"data": {"paper", "small"}, "learner": set(LEARNER_CLASSES),
                     "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
                     | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "ekf_lin_hybrid_backprop", "adf_gp_hybrid",
                        "ukf_mm_gp_hybrid", "pf_gp_hybrid", "ekf_sfm_hybrid_backprop", "ekf_gp_hybrid_backprop",
-                       "ekf_lstm_hybrid_backprop"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
+                       "ekf_lstm_hybrid_backprop", "ekf_lin_hybrid_calibrated", "ekf_sfm_hybrid_calibrated",
+                       "ekf_gp_hybrid_calibrated", "ekf_lstm_hybrid_calibrated"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
                     "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
                     "network": {"yu", "yu_blind"},
                     "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1",

@@ -35,7 +35,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("methods/",),
     ("metrics/", "forecast"),
     ("studies/",),
-    ("compose",),
+    ("compose", "search_path"),
     ("schemas/",),
     ("reports/", "callbacks", "reference"),
     ("run", "report", "api", "bench", "train_lstm", "tools/"),

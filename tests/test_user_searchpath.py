@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from dslearn import conf_paths
+from dslearn import conf_paths, search_path
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -89,10 +89,10 @@ def test_a_matrix_sweep_of_the_users_preset_with_the_basic_launcher(tmp_path):
 @pytest.fixture
 def user_dirs():
     """The process's config folders restored after the test (adding a search path is for the whole command)."""
-    dirs, path = list(conf_paths.CONF_DIRS), list(conf_paths.SEARCH_PATH)
+    dirs, path = list(conf_paths.CONF_DIRS), list(search_path.SEARCH_PATH)
     yield
     conf_paths.CONF_DIRS[:] = dirs
-    conf_paths.SEARCH_PATH[:] = path
+    search_path.SEARCH_PATH[:] = path
 
 
 def test_the_option_listings_and_compositions_include_the_users_folder(tmp_path, user_dirs):
@@ -120,4 +120,4 @@ def test_the_option_listings_and_compositions_include_the_users_folder(tmp_path,
     nodes = group_options("model", ["lin", "my_lin"])
     assert (nodes["lin"].noise_std, nodes["my_lin"].noise_std) == (0.1, 0.25)
     with pytest.raises(ConfigError, match="hydra.searchpath: file:///no/such/folder is not a folder"):
-        conf_paths.add_search_path(["file:///no/such/folder"])
+        search_path.add_search_path(["file:///no/such/folder"])

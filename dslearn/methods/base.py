@@ -50,7 +50,7 @@ def require(spec: ScenarioSpec, what: str, **need) -> str | None:
 
 
 def declared(target) -> Callable[[ScenarioSpec], str | None] | None:
-    """The ``spec_misfit`` a part's ``_target_`` declares (the object Hydra would call: a class, a factory
+    """The ``spec_misfit`` a part's ``_target_`` declares (the object the composition root calls: a class, a factory
     classmethod, whose class is asked, or a function with a ``spec_misfit`` attribute), ``None`` where it
     declares nothing."""
     for owner in (target, getattr(target, "__self__", None)):

@@ -56,18 +56,6 @@ class DistributedFilter:
     #: how the config layer names it (:func:`dslearn.schemas.base.unread_keys`)
     config_label = "the distributed filter"
 
-    @staticmethod
-    def config_unused(cfg, node) -> dict:
-        """``learn_gate_std`` where nothing learns online with the composed configuration ``cfg``
-        (:func:`dslearn.schemas.base.online_learning`): the gate only keeps estimates out of the online data sets."""
-        from dslearn.schemas.base import online_learning
-
-        why = online_learning(cfg) if "learn_gate_std" in node else None
-        if why is None:
-            return {}
-        return {"learn_gate_std": f"{why}: the learning gate only keeps estimates out of the data sets learned "
-                                  "online"}
-
     predict: Any
     model: MotionModel
     observation: ObservationModel

@@ -201,7 +201,6 @@ def aggregated_for_scenario(*, scenario, num_nodes: int, dtype, device, aggregat
     return AggregatedGPMotion(base, str(aggregation), bool(normalise_beta), str(aggregation_jacobian))
 
 
-#: a GP that learns online; the keys it does not read (:func:`dslearn.models.gp.config_unused`)
+#: a GP that learns online (the keys it does not read: dslearn.schemas.base.hook_of)
 aggregated_for_scenario.config_learns_online = True
-aggregated_for_scenario.config_unused = GPMotionModel.config_unused
 

@@ -256,29 +256,6 @@ class GPMotionModel(MotionModel):
         return self
 
 
-def config_unused(cfg, node) -> dict:
-    """The keys of a GP motion model's node (``conf/model/gp*.yaml``) that it does not read with the composed
-    configuration ``cfg`` (:func:`dslearn.schemas.base.unread_keys`): the refit's and the adaptive noise's keys
-    where it learns nothing online (``learner=none``: no data, the GP is its prior); ``fit_iters``, ``fit_lr`` with
-    ``fit_every=0`` (fixed hyperparameters); ``noise_fading`` unless ``noise=adaptive``."""
-    from dslearn.schemas.base import online_learning
-
-    out = {}
-    why = online_learning(cfg, "model")
-    if why is not None:
-        for k in ("fit_every", "fit_iters", "fit_lr", "noise_fading"):
-            if k in node:
-                out[k] = f"{why}: the GP gathers no data and stays its prior"
-    elif node.get("fit_every") == 0:
-        for k in ("fit_iters", "fit_lr"):
-            if k in node:
-                out[k] = "model.fit_every=0: the hyperparameters are never refitted"
-    if "noise_fading" in node and node.get("noise") != "adaptive":
-        out.setdefault("noise_fading", f"model.noise={node.get('noise')}: only noise=adaptive fades a noise estimate")
-    return out
-
-
 #: what the config layer asks of the part (:func:`dslearn.schemas.base.unread_keys`, ``online_learning``)
 GPMotionModel.config_learns_online = True
-GPMotionModel.config_unused = staticmethod(config_unused)
 

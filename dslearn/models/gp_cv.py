@@ -23,7 +23,6 @@ def gp_cv_for_scenario(*, scenario, num_nodes: int, dtype, device, mean=None, **
                                       mean=ConstantVelocityMean(float(scenario.dt)), **keys)
 
 
-#: a GP that learns online; the keys it does not read (:func:`dslearn.models.gp.config_unused`)
+#: a GP that learns online (the keys it does not read: dslearn.schemas.base.hook_of)
 gp_cv_for_scenario.config_learns_online = True
-gp_cv_for_scenario.config_unused = GPMotionModel.config_unused
 

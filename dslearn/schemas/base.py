@@ -335,7 +335,7 @@ def _unread(cfg: DictConfig, node: DictConfig, group: str, prefix: str, out: dic
         for k in keys:
             if k not in reads:
                 out[f"{prefix}.{k}"] = (who, why)
-    hook = getattr(cls, "config_unused", None)
+    hook = hook_of(cls)
     if hook is not None:
         for k, why in (hook(cfg, node) or {}).items():
             w, why = why if isinstance(why, tuple) else (who, why)
@@ -361,9 +361,11 @@ def unread_keys(cfg: DictConfig, group: str) -> dict[str, tuple[str, str]]:
     * ``config_reads``: the keys of its node it reads (besides :data:`PART_KEYS`); every other key of the node is
       not read, for the reason ``config_unread`` (a phrase). Without it every key is read (the builder passes
       each to the constructor, which refuses a key it does not take);
-    * ``config_unused(cfg, node)``: the keys of its node (dotted below it) that it does not read with this
-      composed configuration, ``{key: why}`` (or ``{key: (the part, why)}`` to name another part as the reason):
-      e.g. the distributed filter's learning gate where nothing learns online (:func:`online_learning`)."""
+    * a conditional rule ``(cfg, node) -> {key: why}`` (or ``{key: (the part, why)}`` to name another part as the
+      reason): the keys of its node (dotted below it) that it does not read with this composed configuration, e.g.
+      the distributed filter's learning gate where nothing learns online (:func:`online_learning`). A rule that
+      reads only the part's own node is its ``config_unused``; one that reads other parts of the configuration is
+      kept in this module (:func:`hook_of`), so the parts stay free of the config machinery."""
     node = cfg.get(group)
     out: dict[str, tuple[str, str]] = {}
     if isinstance(node, DictConfig):
@@ -505,3 +507,89 @@ def to_plain(node: Any) -> Any:
     if isinstance(node, (DictConfig, ListConfig)):
         return OmegaConf.to_container(node, resolve=True)
     return node
+
+# ------------------------------------------------------------------------------------------------
+# What a part does not read with the rest of a composed configuration: rules that depend on other parts (the
+# learner, the fusion, the task) live here, keyed by the part they speak for, so the parts below this layer
+# stay free of the config machinery (tests/test_layers.py); a rule that reads only the part's own node is the
+# part's ``config_unused``.
+
+def filter_unused(cfg: DictConfig, node: DictConfig) -> dict:
+    """The distributed filter's ``learn_gate_std`` where nothing learns online with ``cfg``
+    (:func:`online_learning`): the gate only keeps estimates out of the online data sets."""
+    why = online_learning(cfg) if "learn_gate_std" in node else None
+    if why is None:
+        return {}
+    return {"learn_gate_std": f"{why}: the learning gate only keeps estimates out of the data sets learned online"}
+
+
+def gp_unused(cfg: DictConfig, node: DictConfig) -> dict:
+    """The keys of a GP motion model's node (``conf/model/gp*.yaml``) that it does not read with ``cfg``: the
+    refit's and the adaptive noise's keys where it learns nothing online (``learner=none``: no data, the GP is its
+    prior); ``fit_iters``, ``fit_lr`` with ``fit_every=0`` (fixed hyperparameters); ``noise_fading`` unless
+    ``noise=adaptive``."""
+    out = {}
+    why = online_learning(cfg, "model")
+    if why is not None:
+        for k in ("fit_every", "fit_iters", "fit_lr", "noise_fading"):
+            if k in node:
+                out[k] = f"{why}: the GP gathers no data and stays its prior"
+    elif node.get("fit_every") == 0:
+        for k in ("fit_iters", "fit_lr"):
+            if k in node:
+                out[k] = "model.fit_every=0: the hyperparameters are never refitted"
+    if "noise_fading" in node and node.get("noise") != "adaptive":
+        out.setdefault("noise_fading", f"model.noise={node.get('noise')}: only noise=adaptive fades a noise estimate")
+    return out
+
+
+def network_unused(cfg: DictConfig, node: DictConfig) -> dict:
+    """The keys of a network node (:func:`~dslearn.sim.placement.make_network`) not read with ``cfg``:
+    ``comm_radius`` and ``k_nearest`` where ``edges`` give the links, ``comm_radius`` where ``k_nearest`` does; and
+    where the fusion part sends nothing over the links (an individual node, a fusion centre: its class's
+    ``uses_links``) the links themselves, ``edges``, and the rules that make them where the positions are given
+    (with random positions they still decide which draw is connected)."""
+    out: dict[str, Any] = {}
+    if node.get("edges") is not None:
+        out.update({k: "network.edges gives the links" for k in ("comm_radius", "k_nearest")})
+    elif node.get("k_nearest") is not None:
+        out["comm_radius"] = "network.k_nearest gives the links"
+    spec = TASKS.get(str(cfg.task.name))
+    cons = cfg.get("consensus")
+    if spec is None or "consensus" not in spec.parts or cons is None or not cons.get("_target_"):
+        return out
+    cls = part_class(cons._target_)
+    if cls is None or getattr(cls, "uses_links", True):
+        return out
+    who = f"consensus={cons.get('name') or cons._target_}"
+    why = f"{getattr(cls, 'config_unread', 'it sends nothing over the links')}; no links between nodes are used"
+    keys = ("edges",) if node.get("positions") is None else ("edges", "comm_radius", "k_nearest")
+    for k in keys:
+        out.setdefault(k, (who, why))
+    return out
+
+
+@functools.lru_cache(maxsize=1)
+def hooks() -> dict[Any, Callable[[DictConfig, DictConfig], dict]]:
+    """Part (the class or factory a ``_target_`` names, as :func:`part_class` gives it) ->
+    its conditional rule. Imported on first use: the parts import PyTorch."""
+    from dslearn.methods.distributed import DistributedFilter
+    from dslearn.models.aggregated import aggregated_for_scenario
+    from dslearn.models.gp import GPMotionModel
+    from dslearn.models.gp_cv import gp_cv_for_scenario
+    from dslearn.sim.placement import make_network
+
+    return {DistributedFilter: filter_unused, GPMotionModel: gp_unused, gp_cv_for_scenario: gp_unused,
+            aggregated_for_scenario: gp_unused, make_network: network_unused}
+
+
+def hook_of(part: Any) -> Callable[[DictConfig, DictConfig], dict] | None:
+    """The conditional rule of ``part`` (its own ``config_unused`` where it declares one, e.g. a learner's
+    optimiser settings, else this layer's), ``None`` where it has none."""
+    own = getattr(part, "config_unused", None)
+    if own is not None:
+        return own
+    try:
+        return hooks().get(part)
+    except TypeError:  # an unhashable target
+        return None

@@ -69,35 +69,6 @@ def make_network(
     return SensorNetwork(pos, num_sensors, adj, float(sensing_range), float(meas_std))
 
 
-def _network_unused(cfg, node) -> dict:
-    """The keys of a network node (:func:`make_network`) not read with the composed configuration ``cfg``
-    (:func:`dslearn.schemas.base.unread_keys`): ``comm_radius`` and ``k_nearest`` where ``edges`` give the links,
-    ``comm_radius`` where ``k_nearest`` does; and where the fusion part sends nothing over the links (an individual
-    node, a fusion centre: its class's ``uses_links``) the links themselves, ``edges``, and the rules that make them
-    where the positions are given (with random positions they still decide which draw is connected)."""
-    from dslearn.schemas.base import TASKS, part_class
-
-    out = {}
-    if node.get("edges") is not None:
-        out.update({k: "network.edges gives the links" for k in ("comm_radius", "k_nearest")})
-    elif node.get("k_nearest") is not None:
-        out["comm_radius"] = "network.k_nearest gives the links"
-    spec = TASKS.get(str(cfg.task.name))
-    cons = cfg.get("consensus")
-    if spec is None or "consensus" not in spec.parts or cons is None or not cons.get("_target_"):
-        return out
-    cls = part_class(cons._target_)
-    if cls is None or getattr(cls, "uses_links", True):
-        return out
-    who = f"consensus={cons.get('name') or cons._target_}"
-    why = f"{getattr(cls, 'config_unread', 'it sends nothing over the links')}; no links between nodes are used"
-    keys = ("edges",) if node.get("positions") is None else ("edges", "comm_radius", "k_nearest")
-    for k in keys:
-        out.setdefault(k, (who, why))
-    return out
-
-
-#: what the network part does not read (:func:`dslearn.schemas.base.unread_keys`)
-make_network.config_unused = _network_unused
+#: how the config layer names it (what it does not read: dslearn.schemas.base.hook_of)
 make_network.config_label = "the network part"
 

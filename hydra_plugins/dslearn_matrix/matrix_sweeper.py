@@ -91,7 +91,7 @@ class MatrixSweeper(BasicSweeper):
 
         assert self.hydra_context is not None and self.config is not None
         combos = BasicSweeper.split_arguments(overrides, None)[0]
-        from dslearn.conf_paths import add_search_path
+        from dslearn.search_path import add_search_path
         from dslearn.studies.matrix import CELLS_FILE
 
         add_search_path(self.config.hydra.get("searchpath") or [])  # the user's folders: their options count too
