@@ -151,6 +151,13 @@ def compare(old: str, new: str, rtol: float | None = None, atol: float = 1e-12) 
             f"{only_old} rows only in the golden file, {only_new} only in the new run"), within
 
 
+#: runs whose numbers move more than rounding across CPUs, with the tolerance they get under ``--rtol`` (the larger
+#: of the two) and why: the GP-Bayes benchmark fits its GPs' hyperparameters by an optimiser and draws particles, so
+#: a CPU's own rounding is amplified (measured: up to 3.7e-7 relative between an AMD EPYC and the recording
+#: machine, the same on the code before and after a change that touched none of it)
+CROSS_CPU = {"gp_bayes_small": (1e-6, 1e-9)}
+
+
 def check(out: Path, only: str | None, rtol: float | None = None, atol: float = 1e-12) -> int:
     manifest = json.loads((out / "manifest.json").read_text())
     bad = 0
@@ -162,7 +169,10 @@ def check(out: Path, only: str | None, rtol: float | None = None, atol: float = 
                 continue
             old = gzip.decompress((out / f"{name}.csv.gz").read_bytes()).decode()
             new, wall = run_one(name, Path(tmp))
-            verdict, ok = compare(old, new, rtol, atol)
+            r, a = rtol, atol
+            if rtol is not None and name in CROSS_CPU:
+                r, a = max(rtol, CROSS_CPU[name][0]), max(atol, CROSS_CPU[name][1])
+            verdict, ok = compare(old, new, r, a)
             bad += not ok
             print(f"{name}: {verdict} ({wall:.1f} s)")
     return 1 if bad else 0

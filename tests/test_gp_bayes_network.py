@@ -233,7 +233,9 @@ def test_one_node_is_the_single_node_study():
     new = df[df["metric"] != "runtime_s"]
     m = gold.merge(new, on=keys, how="outer", suffixes=("_gold", "_new"), indicator=True)
     assert (m["_merge"] == "both").all() and len(m) == len(gold)
-    np.testing.assert_allclose(m["value_new"], m["value_gold"], rtol=1e-8, atol=1e-10)
+    # the golden check's tolerance for this run across CPUs (benchmarks/golden.py CROSS_CPU: the GPs' fitted
+    # hyperparameters and the particles amplify a CPU's rounding to ~1e-7 relative)
+    np.testing.assert_allclose(m["value_new"], m["value_gold"], rtol=1e-6, atol=1e-9)
 
 
 def test_network_run_rows_and_report(tmp_path):
