@@ -47,13 +47,24 @@ def _target_params(target) -> dict[str, inspect.Parameter]:
         return {}
 
 
+def import_object(value: Any, name: str) -> Any:
+    """The object an import path names (a part's ``_target_``, a sweeper's ``select``); a
+    :class:`ConfigError` naming ``name=value`` where it cannot be imported."""
+    from hydra.utils import get_object
+
+    try:
+        return get_object(str(value))
+    except Exception as e:  # noqa: BLE001  (hydra raises ImportError / plain Exception)
+        raise ConfigError(f"{name}={value!r} cannot be imported: {str(e).splitlines()[0]}") from None
+
+
 def build(node: Any, prefix: str, **runtime: Any) -> Any:
     """Instantiate the config ``node`` (found at ``prefix``, e.g. ``model``); a ``_partial_`` node is
     then called with the ``runtime`` objects its target names (with none given, the partial is
     returned for the caller to complete). Unknown keys, or a part whose
     target cannot be found, raise :class:`ConfigError` naming ``prefix``."""
     from hydra.errors import InstantiationException
-    from hydra.utils import get_object, instantiate
+    from hydra.utils import instantiate
 
     if node is None:
         raise ConfigError(f"{prefix} is missing (null)")
@@ -61,10 +72,7 @@ def build(node: Any, prefix: str, **runtime: Any) -> Any:
     target = spec.get("_target_")
     if not target:
         raise ConfigError(f"{prefix} has no _target_ (the class or factory that builds it)")
-    try:
-        fn = get_object(target)
-    except Exception as e:  # noqa: BLE001  (hydra raises ImportError / plain Exception)
-        raise ConfigError(f"{prefix}._target_={target!r} cannot be imported: {str(e).splitlines()[0]}") from None
+    fn = import_object(target, f"{prefix}._target_")
     params = _target_params(fn)
     takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
     named = {k for k, p in params.items() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
@@ -273,15 +281,10 @@ def method_takes(cfg: DictConfig) -> tuple[str, ...]:
     ``observation``, ``fusion``, ``learner``), named by their root groups (``fusion`` is the ``consensus`` group)."""
     import inspect
 
-    from hydra.utils import get_object
-
     target = cfg.filter.get("_target_")
     if not target:
         raise ConfigError("filter has no _target_ (the method its engine makes)")
-    try:
-        params = inspect.signature(get_object(str(target))).parameters
-    except Exception as e:  # noqa: BLE001
-        raise ConfigError(f"filter._target_={target!r} cannot be imported: {str(e).splitlines()[0]}") from None
+    params = inspect.signature(import_object(target, "filter._target_")).parameters
     group = {"model": "model", "observation": "observation", "fusion": "consensus", "learner": "learner"}
     return tuple(g for p, g in group.items() if p in params)
 
@@ -310,9 +313,7 @@ def _method(cfg: DictConfig, s: "_Slots"):
     }
     import inspect
 
-    from hydra.utils import get_object
-
-    params = inspect.signature(get_object(str(cfg.filter._target_))).parameters
+    params = inspect.signature(import_object(cfg.filter._target_, "filter._target_")).parameters
     made = build(cfg.filter, "filter", **{k: make() for k, make in makers.items() if k in params})
     return made() if isinstance(made, functools.partial) else made  # an engine that takes no run-time part
 
@@ -369,13 +370,8 @@ def build_study(cfg: DictConfig) -> Any:
     slots filled with the run's built parts and typed settings (:data:`SLOTS`)."""
     import inspect
 
-    from hydra.utils import get_object
-
     target = str(cfg.task._target_)
-    try:
-        cls = get_object(target)
-    except Exception as e:  # noqa: BLE001
-        raise ConfigError(f"task._target_={target!r} cannot be imported: {str(e).splitlines()[0]}") from None
+    cls = import_object(target, "task._target_")
     params = [n for n in inspect.signature(cls).parameters if n != "self"]
     unknown = [n for n in params if n not in SLOTS]
     if unknown:

@@ -898,12 +898,9 @@ def sweep_select(master: DictConfig):
     name = OmegaConf.select(master, "hydra.sweeper.select", default=None)
     if not name:
         return None
-    from hydra.utils import get_object
+    from dslearn.compose import import_object
 
-    try:
-        return get_object(str(name))
-    except Exception as e:  # noqa: BLE001 - hydra raises ImportError / plain Exception
-        raise ConfigError(f"hydra.sweeper.select={name!r} cannot be imported: {str(e).splitlines()[0]}") from None
+    return import_object(name, "hydra.sweeper.select")
 
 
 #: the root groups and keys of task ``liu_dgpt`` that became its own keys (:func:`_moved`)

@@ -81,10 +81,21 @@ def unit_values(results: pd.DataFrame) -> pd.DataFrame:
     """One row per (method, scenario, seed, test episode) of a matrix results table: ``rmse`` and ``nees_pos``,
     each the mean over the reporting sensing nodes (every reporting node where none is marked sensing; NaN
     where the metric is absent)."""
+    return _units(_numeric(results))
+
+
+def _numeric(results: pd.DataFrame) -> pd.DataFrame:
+    """A copy of a results table with numeric ``value`` and a ``seed`` column (0 for results written before
+    ``task.seeds``)."""
     df = results.copy()
     df["value"] = pd.to_numeric(df["value"], errors="coerce")
     if "seed" not in df.columns:
         df["seed"] = 0
+    return df
+
+
+def _units(df: pd.DataFrame) -> pd.DataFrame:
+    """:func:`unit_values` of a table already made numeric (:func:`_numeric`)."""
     out = []
     for (method, scenario), g in df.groupby(["method", "scenario"], sort=False):
         nodes = g[g["node_kind"] == "sensor"] if (g["node_kind"] == "sensor").any() else g[g["node_kind"] != "all"]
@@ -106,11 +117,8 @@ def cell_values(results: pd.DataFrame) -> pd.DataFrame:
     of the NEES and ``runtime_s`` (the method's learning and estimation time, mean over the seeds)."""
     from dslearn.metrics.trajectories import nees_band
 
-    units = unit_values(results)
-    df = results.copy()
-    df["value"] = pd.to_numeric(df["value"], errors="coerce")
-    if "seed" not in df.columns:
-        df["seed"] = 0
+    df = _numeric(results)
+    units = _units(df)
     out = []
     for (method, scenario), u in units.groupby(["method", "scenario"], sort=False):
         g = df[(df["method"].astype(str) == method) & (df["scenario"].astype(str) == scenario)]

@@ -105,15 +105,10 @@ def _error_text(e: BaseException) -> str:
 
 def _part_target(node, key: str):
     """The object a part's ``_target_`` names (ConfigError naming ``<key>._target_`` where it cannot be imported)."""
-    from hydra.utils import get_object
+    from dslearn.compose import import_object
 
     target = node.get("_target_") if isinstance(node, DictConfig) else None
-    if not target:
-        return None
-    try:
-        return get_object(str(target))
-    except Exception as e:  # noqa: BLE001 - hydra raises ImportError / plain Exception
-        raise ConfigError(f"{key}._target_={target!r} cannot be imported: {str(e).splitlines()[0]}") from None
+    return import_object(target, f"{key}._target_") if target else None
 
 
 def declared_reason(cfg: DictConfig, spec) -> str | None:
