@@ -1,8 +1,9 @@
 r"""Jiang et al.'s method (ISITA 2022) as a method of the matrix: at every timing the fusion centre identifies
 the source's parameter over the factor graph from the sensors' compressed squared-range samples (Gaussian
 belief propagation, Eqs. 6-16, expanded at the tracker's prediction) and the EKF-FG refines its prediction
-with that output (Eqs. 17-19) — the loop of :func:`dslearn.learning.factor_graph.engine.simulate`, run on
-the measurements alone (no truth, no centralised baselines, one configuration).
+with that output (Eqs. 17-19) — the loop of :class:`dslearn.learning.factor_graph.engine.EkfFgTracker`, the one
+that the study's :func:`~dslearn.learning.factor_graph.engine.simulate` steps, here on the measurements alone (no
+truth, no centralised baselines, one configuration).
 
 Its estimates are the EKF-FG's refined means ``x_{k|k}`` with the diagonal covariances
 ``diag(P_{x,k|k})`` (the tracker follows each parameter as an independent scalar, Eq. 18), reported by one
@@ -21,10 +22,8 @@ import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
 from dslearn.errors import ConfigError, check_choice
-from dslearn.filters.ekf_fg import OBS_VAR_MODES, TrackState, ekf_fg_step, observation_variance, predict
-from dslearn.learning.factor_graph.crlb import crlb
-from dslearn.learning.factor_graph.engine import TrackerSettings
-from dslearn.learning.factor_graph.identification import compress_measurements, identify
+from dslearn.filters.ekf_fg import OBS_VAR_MODES
+from dslearn.learning.factor_graph.engine import EkfFgTracker, TrackerSettings
 from dslearn.learning.learners import FactorGraphIdentification, refuse
 from dslearn.methods.base import require
 from dslearn.network import SensorNetwork
@@ -145,35 +144,10 @@ class FactorGraphMethod:
                          torch.ones(1, dtype=torch.bool))
 
     def track(self, h, samples: torch.Tensor, sigma_y: float):
-        """The loop of :func:`~dslearn.learning.factor_graph.engine.simulate` (its EKF-FG part, one
+        """The EKF-FG loop (:class:`~dslearn.learning.factor_graph.engine.EkfFgTracker`, the study's engine, one
         configuration ``C = 1``) on raw samples ``(B, K, N, L)``: the refined means and variances ``(B, K, M)``."""
-        s = self.settings
-        b, k_steps, _, lsm = samples.shape
-        dt, dev = samples.dtype, samples.device
-        m = len(s.initial_state)
-        guess = torch.tensor(s.init_guess, dtype=dt, device=dev)
-        sig_cb = torch.full((1, b), float(sigma_y), dtype=dt, device=dev)
-        x0 = torch.tensor(s.initial_state, dtype=dt, device=dev).expand(1, b, m)
-        st = TrackState(x0.clone(), torch.full((1, b, m), s.initial_state_var, dtype=dt, device=dev),
-                        torch.zeros(1, b, m, dtype=dt, device=dev),
-                        torch.full((1, b, m), s.initial_gradient_var, dtype=dt, device=dev))
-        num_iters = torch.tensor([self.iterations], device=dev)
-        cidx = torch.arange(1, device=dev)
-        means, variances = [], []
-        for k in range(k_steps):
-            y = samples[None, :, k]  # (1, B, N, L)
-            x_pred, p_pred = predict(st, s.process_var)
-            ym, yv = compress_measurements(y, None if s.measurement_var == "sample" else sig_cb.square())
-            start = x_pred if s.init_guess_mode == "prediction" else guess
-            beta = x_pred if s.taylor_point == "prediction" else torch.broadcast_to(start, x_pred.shape)
-            ident = identify(h, ym, yv, beta, start, self.iterations, init_var=s.init_var, prior_var=s.prior_var,
-                             relinearize=s.relinearize, lambda_tol=s.lambda_tol, tol=s.converge_tol,
-                             schedule=s.schedule, damping=s.damping, graph=s.graph)
-            eta = ident.mean[num_iters, cidx]
-            bound = crlb(h, x_pred, sig_cb, lsm, s.crlb_form)
-            obs_var, _ = observation_variance(bound, eta, ident.mean[num_iters - 1, cidx], x_pred, p_pred,
-                                              s.obs_var, s.gate)
-            st = ekf_fg_step(st, eta, obs_var, s.process_var, s.gradient_var, x_pred=x_pred, P_pred=p_pred)
-            means.append(st.x_mean[0])
-            variances.append(st.x_var[0])
-        return torch.stack(means, 1), torch.stack(variances, 1)
+        b, _, _, lsm = samples.shape
+        sig = torch.full((1, b), float(sigma_y), dtype=samples.dtype, device=samples.device)
+        tracker = EkfFgTracker(h, self.settings, sig, torch.tensor([self.iterations], device=samples.device), lsm)
+        mean, var = tracker.run(samples[None])
+        return mean[0], var[0]

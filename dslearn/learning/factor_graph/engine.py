@@ -80,6 +80,72 @@ class SimulationOutput:
     iters_to_converge: Tensor = None  # (C, B, K) at the config's full T_max iterations
 
 
+@dataclass
+class TimingOutput:
+    """What one timing of :class:`EkfFgTracker` computed, besides its new state (``C`` configurations, ``B`` runs)."""
+
+    x_pred: Tensor     # (C, B, M) the prediction (Eq. 17)
+    eta: Tensor        # (C, B, M) the identification's output after each configuration's t_c iterations
+    obs_var: Tensor    # (C, B, M) sigma_e^2 of that output (Eq. 5, :func:`observation_variance`)
+    gated: Tensor      # (C, B, M) bool, the outputs the innovation gate inflated
+    ident: object      # the identification's trace (:func:`identify`)
+
+
+class EkfFgTracker:
+    """The EKF-FG loop (Jiang et al.): at every timing predict (Eq. 17), identify the parameters over the factor
+    graph at the prediction from the sensors' compressed samples (Eqs. 6-16), refine with that output and update
+    the gradient (Eqs. 18-19). The one implementation of the loop: the study's Monte Carlo engine
+    (:func:`simulate`) and the matrix's method (:class:`dslearn.methods.factor_graph.FactorGraphMethod`) both step it.
+
+    Args:
+        h: measurement function ``(*B, M) -> (*B, N)``.
+        settings: :class:`TrackerSettings` (its ``initial_state`` gives ``M``).
+        sigma_y: ``(C, B)`` the sensors' noise std per configuration and run.
+        num_iters: ``(C,)`` FG iterations per configuration (>= 1).
+        num_samples: ``L``, samples per sensor and timing (the CRLB's).
+    """
+
+    def __init__(self, h: Callable[[Tensor], Tensor], settings: TrackerSettings, sigma_y: Tensor, num_iters: Tensor,
+                 num_samples: int):
+        c, b = sigma_y.shape
+        dt, dev = sigma_y.dtype, sigma_y.device
+        m = len(settings.initial_state)
+        self.h, self.settings, self.sigma_y, self.num_iters, self.num_samples = h, settings, sigma_y, num_iters, num_samples
+        self.max_iters = int(num_iters.max())
+        self.guess = torch.tensor(settings.init_guess, dtype=dt, device=dev)
+        self.cidx = torch.arange(c, device=dev)
+        x0 = torch.tensor(settings.initial_state, dtype=dt, device=dev).expand(c, b, m)
+        self.state = TrackState(x0.clone(), torch.full((c, b, m), settings.initial_state_var, dtype=dt, device=dev),
+                                torch.zeros(c, b, m, dtype=dt, device=dev),
+                                torch.full((c, b, m), settings.initial_gradient_var, dtype=dt, device=dev))
+
+    def step(self, samples: Tensor) -> TimingOutput:
+        """One timing on the raw samples ``(C, B, N, L)`` (or broadcastable to it); updates :attr:`state`."""
+        s, h, st = self.settings, self.h, self.state
+        x_pred, P_pred = predict(st, s.process_var)
+        ym, yv = compress_measurements(samples, None if s.measurement_var == "sample" else self.sigma_y.square())
+        start = x_pred if s.init_guess_mode == "prediction" else self.guess
+        beta = x_pred if s.taylor_point == "prediction" else torch.broadcast_to(start, x_pred.shape)
+        ident = identify(h, ym, yv, beta, start, self.max_iters, init_var=s.init_var, prior_var=s.prior_var,
+                         relinearize=s.relinearize, lambda_tol=s.lambda_tol, tol=s.converge_tol,
+                         schedule=s.schedule, damping=s.damping, graph=s.graph)
+        eta = ident.mean[self.num_iters, self.cidx]                         # (C, B, M): output after t_c iterations
+        bound = crlb(h, x_pred, self.sigma_y, self.num_samples, s.crlb_form)  # the paper's sigma_e^2 (Eq. 5, 27/33)
+        obs_var, gated = observation_variance(bound, eta, ident.mean[self.num_iters - 1, self.cidx], x_pred, P_pred,
+                                              s.obs_var, s.gate)
+        self.state = ekf_fg_step(st, eta, obs_var, s.process_var, s.gradient_var, x_pred=x_pred, P_pred=P_pred)
+        return TimingOutput(x_pred, eta, obs_var, gated, ident)
+
+    def run(self, samples: Tensor) -> tuple[Tensor, Tensor]:
+        """Every timing of ``samples (C, B, K, N, L)`` in turn: the refined means and variances ``(C, B, K, M)``."""
+        means, variances = [], []
+        for k in range(samples.shape[2]):
+            self.step(samples[:, :, k])
+            means.append(self.state.x_mean)
+            variances.append(self.state.x_var)
+        return torch.stack(means, 2), torch.stack(variances, 2)
+
+
 def simulate(
     h: Callable[[Tensor], Tensor],
     truth: Tensor,
@@ -106,16 +172,12 @@ def simulate(
     L = noise.shape[-1]
     assert noise.shape[:2] == (B, K) and num_iters.shape == (C,), (noise.shape, num_iters.shape)
     dev, dt = truth.device, truth.dtype
-    T = int(num_iters.max())
-    guess = torch.tensor(settings.init_guess, dtype=dt, device=dev)
-    assert guess.shape == (M,), "init_guess must have M entries"
+    assert len(settings.init_guess) == M, "init_guess must have M entries"
     sig = sigma_y.to(dt)[:, None]                                   # (C, 1) -> broadcast over B
     sig_cb = sig.expand(C, B)
 
-    x0 = torch.tensor(settings.initial_state, dtype=dt, device=dev).expand(C, B, M)
-    st = TrackState(x0.clone(), torch.full((C, B, M), settings.initial_state_var, dtype=dt, device=dev),
-                    torch.zeros(C, B, M, dtype=dt, device=dev),
-                    torch.full((C, B, M), settings.initial_gradient_var, dtype=dt, device=dev))
+    tracker = EkfFgTracker(h, settings, sig_cb, num_iters, L)
+    x0 = tracker.state.x_mean
     z = torch.cat([x0, torch.zeros_like(x0)], -1)
     P = torch.diag_embed(torch.cat([torch.full((M,), settings.initial_state_var),
                                     torch.full((M,), settings.initial_gradient_var)]).to(z)).expand(C, B, 2 * M, 2 * M)
@@ -125,27 +187,14 @@ def simulate(
     near_zero = torch.zeros(C, B, dtype=torch.long, device=dev)
     floored = torch.zeros(C, B, dtype=torch.long, device=dev)
     gated = torch.zeros(C, B, dtype=torch.long, device=dev)
-    cidx = torch.arange(C, device=dev)
     for k in range(K):
         xk = truth[:, k]                                            # (B, M)
         with torch.no_grad():
             samples = h(xk).unsqueeze(-1) + sig[..., None, None] * noise[:, k]   # (C, B, N, L)
         # --- EKF-FG: predict (Eq. 17), identify at the prediction (Eqs. 6-16), refine (Eq. 18-19)
-        x_pred, P_pred = predict(st, settings.process_var)
-        ym, yv = compress_measurements(
-            samples, None if settings.measurement_var == "sample" else sig_cb.square())
-        start = x_pred if settings.init_guess_mode == "prediction" else guess
-        beta = x_pred if settings.taylor_point == "prediction" else torch.broadcast_to(start, x_pred.shape)
-        ident = identify(h, ym, yv, beta, start, T, init_var=settings.init_var, prior_var=settings.prior_var,
-                         relinearize=settings.relinearize, lambda_tol=settings.lambda_tol, tol=settings.converge_tol,
-                         schedule=settings.schedule, damping=settings.damping, graph=settings.graph)
-        eta = ident.mean[num_iters, cidx]                           # (C, B, M): output after t_c iterations
-        bound = crlb(h, x_pred, sig_cb, L, settings.crlb_form)      # the paper's sigma_e^2 (Eq. 5, 27/33)
-        obs_var, gated_k = observation_variance(bound, eta, ident.mean[num_iters - 1, cidx], x_pred, P_pred,
-                                                settings.obs_var, settings.gate)
-        st = ekf_fg_step(st, eta, obs_var, settings.process_var, settings.gradient_var,
-                         x_pred=x_pred, P_pred=P_pred)
-        gated += gated_k.sum(-1)
+        out = tracker.step(samples)
+        x_pred, eta, obs_var, ident, st = out.x_pred, out.eta, out.obs_var, out.ident, tracker.state
+        gated += out.gated.sum(-1)
         fg_means.append(ident.mean)                                 # (T+1, C, B, M)
         near_zero += ident.near_zero_lambda
         floored += ident.floored
