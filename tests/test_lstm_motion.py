@@ -234,3 +234,24 @@ def test_faults_study_fits_the_lstm_once_and_refuses_fused_training(make_cfg, mo
     monkeypatch.setattr(yu_faults, "episode_streams", lambda *a, **k: pytest.fail("drew episodes"))
     with pytest.raises(ConfigError, match="model.train_on=fused"):
         api.build_study(make_cfg(*over)).run()
+
+
+def test_weights_dtype_float32_inside_a_float64_filter(yu):
+    """``model.weights_dtype=float32``: the network's weights and arithmetic in float32, its prediction and
+    Jacobian handed back in the filter's float64, equal to the float64 network with the same (rounded) weights
+    to float32 precision; the fit trains the float32 weights; a dtype outside float32|float64 is refused."""
+    cfg, scenario, network, states = yu
+    m32 = _model(cfg, scenario, network, weights_dtype="float32")
+    m64 = _model(cfg, scenario, network)
+    assert m32.param_dtype == torch.float32 and m64.param_dtype == F64
+    m64.load_state_dict({k: v.to(F64) for k, v in m32.state_dict().items()})
+    ctx = StepContext(dt=DT)
+    x = states[:3, 4]
+    y32, y64 = m32(x, ctx), m64(x, ctx)
+    assert y32.dtype == F64 and torch.allclose(y32, y64, rtol=1e-5, atol=1e-5) and not torch.equal(y32, y64)
+    j32 = m32.jacobian(x, ctx)
+    assert j32.dtype == F64 and torch.allclose(j32, _fd_jacobian(m64, x, ctx), rtol=1e-3, atol=1e-3)
+    m32.fit_offline(states, DT, seed=3)
+    assert m32.param_dtype == torch.float32 and math.isfinite(m32.fit_info["train_loss"])
+    with pytest.raises(ConfigError, match="model.weights_dtype"):
+        _model(cfg, scenario, network, weights_dtype="float16")

@@ -49,7 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from dslearn.errors import ConfigError, check_choice, check_positive
-from dslearn.types import AGENT_DIM, POS, StepContext, agents, joint
+from dslearn.types import AGENT_DIM, DTYPES, POS, StepContext, agents, joint
 from dslearn.models.base import MotionModel
 
 POOLINGS = ("none", "social")
@@ -170,6 +170,7 @@ class SocialLSTM(MotionModel):
         val_fraction: float = 0.2,
         process_noise: str = "residuals",
         train_on: str | None = None,
+        weights_dtype: str | None = None,
         *,
         scenario,
         dtype: torch.dtype = torch.float64,
@@ -180,7 +181,14 @@ class SocialLSTM(MotionModel):
         offline training schedule and the process-noise rule (see :meth:`configure_offline`). Initial
         weights from seed 0 (:meth:`fit_offline` draws its own from the study's seed). ConfigError
         naming ``model.<key>`` for a bad value, or for ``obs_len + pred_len`` longer than the
-        scenario's episodes (``scenario.steps + 1`` states) when it says how long they are."""
+        scenario's episodes (``scenario.steps + 1`` states) when it says how long they are.
+
+        ``weights_dtype`` (``float32`` | ``float64`` | None = the run's ``dtype``): the network's weights and
+        arithmetic; the filter around it stays in the run's dtype (the prediction and its Jacobian are cast
+        back), so a float32 network inside a float64 filter trains and predicts about twice as fast."""
+        if weights_dtype is not None:
+            check_choice("model.weights_dtype", str(weights_dtype), tuple(DTYPES))
+            dtype = DTYPES[str(weights_dtype)]
         try:
             model = cls(int(scenario.num_agents), obs_len, pred_len, embed, hidden, pooling, grid, neighbourhood,
                         float(scenario.dt), dtype, device, noise_std, seed=0)
