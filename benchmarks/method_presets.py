@@ -3,10 +3,11 @@ information filter with an EKF or UKF prediction step x five motion models x thr
 YAML file that selects the parts of a matrix cell (``dslearn-run task=matrix method=ekf_gp_hybrid``), the
 learner among them (the model's natural one: online for the GP, offline for the LSTMs, none for LIN and SFM).
 
-    python benchmarks/method_presets.py           # (re)write the 41 files
+    python benchmarks/method_presets.py           # (re)write the files
     python benchmarks/method_presets.py --check   # exit 1 if a file is missing or differs from what it would write
 
-Other families' presets (``dgpt_*``, ``fg_ekf``, ``rbpf_em``) are written by hand beside these.
+Other families' presets (``dgpt_*``, ``fg_ekf``, ``rbpf_em``) are written by hand beside these; the
+position-sensor presets of the other papers' engines (``rbpf_em_lin``) are written here too.
 """
 
 from __future__ import annotations
@@ -90,6 +91,18 @@ def presets() -> dict[str, str]:
             "the training measurements (learner=calibrate).").replace(
             f"method=ekf_{m}_hybrid)", f"method=ekf_{m}_hybrid_calibrated)").replace(
             f"learner: {LEARNERS[m]}", "learner: calibrate")
+    # the other papers' engines taken apart, on the position-sensor scenarios: Braga et al.'s RBPF + online EM +
+    # consensus on the statistics over a constant-velocity state (dslearn/methods/rbpf_modes.py)
+    out["rbpf_em_lin.yaml"] = (
+        "# @package _global_\n"
+        "# Braga et al.'s RBPF over jump-Markov sensor noise modes (a Kalman filter of the constant-velocity state per\n"
+        "# particle), online EM of the modes, 10 rounds of consensus on the EM statistics; position sensors.\n"
+        "# Written by benchmarks/method_presets.py (dslearn-run task=matrix method=rbpf_em_lin).\n"
+        "defaults:\n"
+        "  - override /filter: rbpf_em_lin\n"
+        "  - override /consensus: statistics\n"
+        "  - override /learner: online_em_sensor\n"
+    )
     return out
 
 

@@ -164,6 +164,15 @@ def _check_filter(option, cfg, world):
             assert f.backward_kernel == task.backward_kernel
             assert "em" not in f and "modes" not in f  # the online EM's: learner=online_em
         return
+    if option == "rbpf_em_lin":  # the RBPF over noise modes (position sensors): its own values, the EM the learner's
+        from dslearn.methods.rbpf_modes import RBPFModesMethod
+
+        f = cfg.filter
+        assert get_object(f._target_) is RBPFModesMethod and "predict" not in f
+        assert (f.num_particles, f.process_noise, f.ess_threshold, f.prior_pos_std, f.prior_vel_std) == (
+            64, 1.0, 0.5, 1000.0, 1000.0)
+        assert "em" not in f and "modes" not in f  # the online EM's: learner=online_em_sensor
+        return
     f = cfg.filter  # ukf, ukf_mm and adf inherit the priors and the learning gate of the default
     assert (f.prior_pos_std, f.prior_vel_std, f.learn_gate_std) == (1000.0, 1000.0, 2.0)
     step = build_predict(cfg)
@@ -410,6 +419,11 @@ def _check_method(option, cfg, world):
         learner = {"fg_ekf": "fg_identification", "rbpf_em": "online_em"}[option]
         assert cfg.learner == _compose(f"learner={learner}").learner  # its own learner, set explicitly
         return
+    if option == "rbpf_em_lin":  # the RBPF over noise modes: its filter option, the statistics part, its learner
+        assert cfg.filter == _compose("filter=rbpf_em_lin").filter
+        assert cfg.consensus == _compose("consensus=statistics").consensus
+        assert cfg.learner == _compose("learner=online_em_sensor").learner
+        return
     filt = _compose(f"filter={PRESET_FILTERS[head]}").filter
     assert cfg.filter == filt  # the filter option, every key
     if head == "dgpt":
@@ -426,7 +440,8 @@ def _check_method(option, cfg, world):
 
 
 LEARNER_CLASSES = {"online": "OnlineLearning", "offline": "OfflineLearning", "none": "NoLearning",
-                   "online_em": "OnlineEM", "online_hyperparameters": "OnlineHyperparameters",
+                   "online_em": "OnlineEM", "online_em_sensor": "OnlineEMSensor",
+                   "online_hyperparameters": "OnlineHyperparameters",
                    "fg_identification": "FactorGraphIdentification", "backprop": "BackpropLearning",
                    "calibrate": "CalibrateLearning"}
 
@@ -442,6 +457,8 @@ def _check_learner(option, cfg, world):
         task = _compose("experiment=braga_tbn").task
         assert cfg.learner.em == task.em
         assert dict(cfg.learner.modes) == {k: task.modes[k] for k in ("mu_init", "sigma_init", "pi_init")}
+    elif option == "online_em_sensor":  # its defaults (position sensors): the option's values are the class's
+        assert obj == learners.OnlineEMSensor() and obj.units == "sensor_std" and obj.em["init_mode"] == "uniform"
     elif option == "fg_identification":  # conf/task/jiang_fg.yaml: max_iter, fg
         task = _compose("experiment=jiang_fg").task
         assert cfg.learner.iterations == task.max_iter and cfg.learner.fg == task.fg
@@ -464,9 +481,10 @@ CHECKS = {"data": _check_data, "learner": _check_learner, "method": _check_metho
           "observation": _check_observation, "consensus": _check_consensus, "network": _check_network,
           "scenario": _check_scenario}
 EXPECTED_OPTIONS = {"data": {"paper", "small"}, "learner": set(LEARNER_CLASSES), "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
-                    "task": set(TASKS), "filter": {"default", "ukf", "ukf_mm", "adf", "pf", "dgpt", "fg_ekf", "rbpf_em"},
+                    "task": set(TASKS), "filter": {"default", "ukf", "ukf_mm", "adf", "pf", "dgpt", "fg_ekf", "rbpf_em",
+                                                       "rbpf_em_lin"},
                     "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
-                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "ekf_lin_hybrid_backprop", "adf_gp_hybrid",
+                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "rbpf_em_lin", "ekf_lin_hybrid_backprop", "adf_gp_hybrid",
                        "ukf_mm_gp_hybrid", "pf_gp_hybrid", "ekf_sfm_hybrid_backprop", "ekf_gp_hybrid_backprop",
                        "ekf_lstm_hybrid_backprop", "ekf_lin_hybrid_calibrated", "ekf_sfm_hybrid_calibrated",
                        "ekf_gp_hybrid_calibrated", "ekf_lstm_hybrid_calibrated"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
@@ -603,7 +621,8 @@ def test_fusion_contract(option, yu_world):
 
 
 # ---------------------------------------------------------------------------- filter: predict
-@pytest.mark.parametrize("option", [o for o in _options("filter") if o not in ("dgpt", "fg_ekf", "rbpf_em")])  # no prediction step
+@pytest.mark.parametrize("option", [o for o in _options("filter") if o not in ("dgpt", "fg_ekf", "rbpf_em",
+                                                                                "rbpf_em_lin")])  # no prediction step
 def test_predict_step_contract(option, yu_world):
     """Every prediction step equals the Kalman prediction for the linear (constant-velocity) model. A step for GP
     motion models only (``adf``, ``ukf_mm``) refuses it, and is checked on the GP that is that linear model: the

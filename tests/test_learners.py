@@ -38,7 +38,8 @@ def _run(*overrides) -> tuple[str, torch.Tensor]:
 # ------------------------------------------------------------------------------------- the YAML files
 def test_options_and_yaml_defaults_equal_the_dataclass_defaults(make_cfg):
     assert OPTIONS == sorted(L.LEARNERS) == sorted(["backprop", "calibrate", "fg_identification", "none", "offline",
-                                                    "online", "online_em", "online_hyperparameters"])
+                                                    "online", "online_em", "online_em_sensor",
+                                                    "online_hyperparameters"])
     for name in OPTIONS:
         node = make_cfg("task=matrix", f"learner={name}").learner  # composed only (the default engine takes few)
         cls = L.LEARNERS[name]
@@ -47,7 +48,7 @@ def test_options_and_yaml_defaults_equal_the_dataclass_defaults(make_cfg):
         assert set(node) - {"_target_"} == {f.name for f in dataclasses.fields(cls)}, name
         assert build(node, "learner") == cls(), name
     # the moved blocks: no longer keys of the engines
-    for filt, keys in {"rbpf_em": ("em", "modes"), "dgpt": ("hyper",), "fg_ekf": ("fg", "iterations")}.items():
+    for filt, keys in {"rbpf_em": ("em", "modes"), "rbpf_em_lin": ("em", "modes"), "dgpt": ("hyper",), "fg_ekf": ("fg", "iterations")}.items():
         f = make_cfg(f"filter={filt}").filter
         assert not set(keys) & set(f), filt
 

@@ -44,7 +44,8 @@ def unread_keys(cfg, group):
     return {} if fn is None else fn(cfg, group)
 
 #: the matrix cells a group's option is tried in, first that reads it (a method preset, a scenario it fits)
-MATRIX_BASES = (("ekf_gp_hybrid", "yu_two_agents"), ("dgpt_rbcm", "liu_s1"), ("rbpf_em", "braga"), ("fg_ekf", "jiang"))
+MATRIX_BASES = (("ekf_gp_hybrid", "yu_two_agents"), ("dgpt_rbcm", "liu_s1"), ("rbpf_em", "braga"), ("fg_ekf", "jiang"),
+                ("rbpf_em_lin", "yu_two_agents"))
 #: the scenario of the matrix that each base method fits (scenario options: their cell)
 SCENARIO_BASE = {"yu_two_agents": "ekf_gp_hybrid", "corridor": "ekf_gp_hybrid", "eth_zara1": "ekf_gp_hybrid",
                  "liu_s1": "dgpt_rbcm", "liu_s2": "dgpt_rbcm", "liu_s3": "dgpt_rbcm", "braga": "rbpf_em",

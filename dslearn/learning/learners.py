@@ -112,6 +112,9 @@ def _integer(key: str, v: Any, low: int) -> int:
 #: the online EM's settings and the initial guess of the noise modes (``conf/learner/online_em.yaml``)
 EM_DEFAULTS = {"eta_exponent": 0.7, "burn_in": 50, "sigma_floor": 1e-3, "init_mode": "true"}
 MODE_DEFAULTS = {"mu_init": [-5.0, 25.0], "sigma_init": [5.0, 5.0], "pi_init": [[0.5, 0.5], [0.5, 0.5]]}
+#: the same for position sensors (:class:`OnlineEMSensor`): modes in sensor stds, zero-mean, no known first mode
+EM_SENSOR_DEFAULTS = {"eta_exponent": 0.7, "burn_in": 10, "sigma_floor": 1e-3, "init_mode": "uniform"}
+MODE_SENSOR_DEFAULTS = {"mu_init": [0.0, 0.0], "sigma_init": [1.0, 3.0], "pi_init": [[0.9, 0.1], [0.3, 0.7]]}
 
 
 @dataclass
@@ -125,6 +128,8 @@ class OnlineEM:
     """
 
     name: ClassVar[str] = "online_em"
+    #: the units of ``mu_init`` and ``sigma_init``: metres (Braga et al.'s altimeter)
+    units: ClassVar[str] = "m"
 
     em: Any = field(default_factory=lambda: dict(EM_DEFAULTS))
     modes: Any = field(default_factory=lambda: {k: (list(map(list, v)) if k == "pi_init" else list(v))
@@ -146,6 +151,37 @@ class OnlineEM:
         self.init = make_params(modes["mu_init"], modes["sigma_init"], modes["pi_init"], prefix="learner.modes")
         self.modes = modes
 
+
+
+@dataclass
+class OnlineEMSensor(OnlineEM):
+    """The online EM of jump-Markov measurement noise for position sensors (the RBPF over noise modes,
+    :class:`dslearn.methods.rbpf_modes.RBPFModesMethod`): the same settings as :class:`OnlineEM`, with the initial
+    modes' ``mu_init`` and ``sigma_init`` in multiples of the scenario's sensor noise std (the method scales them, so
+    one setting fits sensors of any accuracy), zero-mean modes (a common bias of a position sensor moves every
+    measurement of a target the same way and cannot be told from the target's position) and no mode known at
+    ``t = 0`` (the sensors report none: ``init_mode: uniform``)."""
+
+    name: ClassVar[str] = "online_em_sensor"
+    units: ClassVar[str] = "sensor_std"
+
+    em: Any = field(default_factory=lambda: dict(EM_SENSOR_DEFAULTS))
+    modes: Any = field(default_factory=lambda: {k: (list(map(list, v)) if k == "pi_init" else list(v))
+                                                for k, v in MODE_SENSOR_DEFAULTS.items()})
+
+    def __post_init__(self) -> None:
+        if isinstance(self.em, dict):
+            self.em = {**EM_SENSOR_DEFAULTS, **self.em}
+        if isinstance(self.modes, dict):
+            self.modes = {**MODE_SENSOR_DEFAULTS, **self.modes}
+        super().__post_init__()
+        if self.em["init_mode"] != "uniform":
+            raise ConfigError(f"learner.em.init_mode={self.em['init_mode']}: position sensors report no noise mode at "
+                              "t = 0; learner.em.init_mode=uniform")
+        if bool((self.init.mu != 0).any()):
+            raise ConfigError(f"learner.modes.mu_init={self.modes['mu_init']}: the modes of a position sensor are "
+                              "zero-mean (a common bias moves every measurement of a target the same way and cannot be "
+                              "told from the target's position); mu_init must be zeros")
 
 # ---------------------------------------------------------------------------------- Liu: hyperparameters
 def _hyper_defaults() -> Any:
@@ -307,5 +343,6 @@ def _calibrate():
     return CalibrateLearning
 
 
-LEARNERS = {c.name: c for c in (OnlineLearning, OfflineLearning, NoLearning, OnlineEM, OnlineHyperparameters,
+LEARNERS = {c.name: c for c in (OnlineLearning, OfflineLearning, NoLearning, OnlineEM, OnlineEMSensor,
+                                OnlineHyperparameters,
                                 FactorGraphIdentification, _backprop(), _calibrate())}

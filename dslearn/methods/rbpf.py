@@ -102,6 +102,9 @@ class RBPFMethod:
         elif not isinstance(self.learner, OnlineEM):
             raise refuse(self.learner, "Braga et al.'s RBPF (filter=rbpf_em) learns the altimeter noise with its "
                                        "online EM", self.learners)
+        if self.learner.units != OnlineEM.units:
+            raise refuse(self.learner, "Braga et al.'s altimeter noise modes are given in metres (the terrain "
+                                       "scenario declares no sensor noise std to scale them by)", self.learners)
 
     @property
     def em(self) -> dict:
