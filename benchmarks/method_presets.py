@@ -30,6 +30,10 @@ MODELS = {"lin": ("lin", "constant velocity (LIN)"),
           "social_lstm": ("social_lstm", "the social LSTM, trained offline on the training episodes' tracks")}
 #: model preset word -> its conf/learner option (the distributed filter's natural learner for that model)
 LEARNERS = {"lin": "none", "sfm": "none", "gp": "online", "lstm": "offline", "social_lstm": "offline"}
+#: model preset word -> its conf/observation option: LIN takes the scenario's own sensor model (observation=sensor:
+#: the linear position sensor on Yu's and Liu's scenarios, the squared range on Jiang's, the terrain altitude on
+#: Braga's); the other models are sized for walkers seen by position sensors (observation=linear)
+OBSERVATIONS = {"lin": "sensor", "sfm": "linear", "gp": "linear", "lstm": "linear", "social_lstm": "linear"}
 #: preset word -> (conf/consensus option, what it is)
 FUSIONS = {"individual": ("individual", "no fusion (each node alone)"),
            "hybrid": ("hybrid", "hybrid consensus (L = 4 rounds)"),
@@ -50,7 +54,7 @@ def presets() -> dict[str, str]:
                     "defaults:\n"
                     f"  - override /filter: {f_opt}\n"
                     f"  - override /model: {m_opt}\n"
-                    "  - override /observation: linear\n"
+                    f"  - override /observation: {OBSERVATIONS[m]}\n"
                     f"  - override /consensus: {c_opt}\n"
                     f"  - override /learner: {LEARNERS[m]}\n"
                 )
@@ -58,7 +62,8 @@ def presets() -> dict[str, str]:
     out["ekf_lin_hybrid_backprop.yaml"] = out["ekf_lin_hybrid.yaml"].replace(
         "hybrid consensus (L = 4 rounds).", "hybrid consensus (L = 4 rounds), Q, R, consensus weights and omega "
         "learned by backpropagation (learner=backprop).").replace(
-        "method=ekf_lin_hybrid)", "method=ekf_lin_hybrid_backprop)").replace("learner: none", "learner: backprop")
+        "method=ekf_lin_hybrid)", "method=ekf_lin_hybrid_backprop)").replace("learner: none", "learner: backprop").replace(
+        "observation: sensor", "observation: linear")  # learner=backprop learns the linear position sensor's R
     # the GP-Bayes filters' prediction steps with the increment GP learned online (dslearn/filters/adf.py,
     # ukf.py with the expected variance, particle.py)
     for word, opt, what in (("adf", "adf", "GP-ADF prediction step (exact moments of the GP prediction at the belief)"),
@@ -90,7 +95,7 @@ def presets() -> dict[str, str]:
             "hybrid consensus (L = 4 rounds).", f"hybrid consensus (L = 4 rounds), a scale of {what} and of R fitted to "
             "the training measurements (learner=calibrate).").replace(
             f"method=ekf_{m}_hybrid)", f"method=ekf_{m}_hybrid_calibrated)").replace(
-            f"learner: {LEARNERS[m]}", "learner: calibrate")
+            f"learner: {LEARNERS[m]}", "learner: calibrate").replace("observation: sensor", "observation: linear")
     # the other papers' engines taken apart, on the position-sensor scenarios: Braga et al.'s RBPF + online EM +
     # consensus on the statistics over a constant-velocity state (dslearn/methods/rbpf_modes.py)
     out["rbpf_em_lin.yaml"] = (

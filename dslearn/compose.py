@@ -121,12 +121,16 @@ def build_motion_model(node: Any, scenario, network, dtype, device):
     return build(node, "model", scenario=scenario, num_nodes=network.num_nodes, dtype=dtype, device=device)
 
 
-def build_observation(node: Any, network, dtype, device):
+def build_observation(node: Any, network, dtype, device, scenario=None):
     """The observation model of ``node`` for the sensors of ``network``: its ``noise_std``, where the option leaves
     it null (the ``conf/observation`` default) or does not give it, is those sensors' own noise
     (``network.meas_std``: the scenario's sensors where it brings its own); a number is kept (a deliberate
-    mismatch between the model and the sensors)."""
-    return build(sensor_noise(node, network), "observation", num_nodes=network.num_nodes, dtype=dtype, device=device)
+    mismatch between the model and the sensors). A model sized by the world (the nodes' positions, the map: the
+    nonlinear sensors' ``for_scenario``) is handed ``network`` and, where given, ``scenario``."""
+    runtime = dict(num_nodes=network.num_nodes, dtype=dtype, device=device, network=network)
+    if scenario is not None:
+        runtime["scenario"] = scenario
+    return build(sensor_noise(node, network), "observation", **runtime)
 
 
 def sensor_noise(node: Any, network) -> Any:
@@ -302,7 +306,7 @@ def _method(cfg: DictConfig, s: "_Slots"):
     makers = {
         "model": lambda: build_motion_model(cfg.model, scenario, net, dtype, dev),
         "model_name": lambda: str(cfg.model.name),
-        "observation": lambda: build_observation(cfg.observation, net, dtype, dev),
+        "observation": lambda: build_observation(cfg.observation, net, dtype, dev, scenario),
         "fusion": lambda: build_fusion(cfg.consensus, net),
         "fusion_name": lambda: str(cfg.consensus.name),
         "learner": lambda: None if cfg.get("learner") is None else build(cfg.learner, "learner"),

@@ -70,6 +70,8 @@ class Episodes:
 
 #: kinds of measurement a scenario yields (what a method's observation side must handle)
 MEASUREMENTS = ("position", "squared_range", "terrain_altitude")
+#: kinds of scenario: targets seen by a network of sensors; nodes navigating themselves (one platform per node)
+KINDS = ("targets", "self")
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,8 @@ class ScenarioSpec:
         dynamics: the motion model the scenario simulates its targets with, where a method may take it as
             known: ``social_force`` (Helbing's social force, its parameters the scenario's ``sfm``); ``None``
             for a recording or a simulator that offers none (``model=sfm`` needs ``social_force``).
+        kind: one of :data:`KINDS`: ``targets`` (targets seen by the network's sensors) or ``self`` (every node
+            navigates itself: node ``s`` measures only its own platform ``s``, Braga's aircraft).
     """
 
     name: str
@@ -106,6 +110,7 @@ class ScenarioSpec:
     source: str = "simulated"
     pools: tuple[int, int] | None = None
     dynamics: str | None = None
+    kind: str = "targets"
 
 
 @dataclass

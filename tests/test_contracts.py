@@ -256,9 +256,34 @@ def _check_model(option, cfg, world):
 
 def _check_observation(option, cfg, world):
     """Both give h(y) = position, C = [I 0] before any learning; R = sigma_nu^2 I (linear) or the GP's prior
-    predictive variance (sigma_f^2 + sigma_nu^2) I = 1.04 I (gp); sigma_nu from network.meas_std = 0.2."""
+    predictive variance (sigma_f^2 + sigma_nu^2) I = 1.04 I (gp); sigma_nu from network.meas_std = 0.2.
+    The nonlinear sensors: sized by the scenario of their measurement kind (Jiang's squared ranges: its sensors,
+    samples and sigma_y; Braga's terrain: its map and its nominal noise; range and bearing: Jiang's sensors)."""
+    from dslearn.models import observation as O
     from dslearn.models.observation import GPObservation, LinearPositionObservation
 
+    if option == "bearing":  # one sample per step: Yu's nodes as the sensors, sigma_nu their noise
+        _, yu, net = world
+        obs = build_observation(cfg.observation, net, F64, CPU, yu)
+        assert type(obs) is O.BearingObservation and obs.sensors.equal(net.positions) and obs.noise_std == 0.2
+        return
+    if option in ("squared_range", "range", "terrain", "sensor"):
+        name = "braga" if option == "terrain" else "jiang"
+        sc = build_scenario(_compose("task=matrix", "method=fg_ekf", f"scenario={name}"))
+        obs = build_observation(cfg.observation, sc.network, F64, CPU, sc)
+        cls = {"squared_range": O.SquaredRangeObservation, "range": O.RangeObservation, "sensor":
+               O.SquaredRangeObservation, "bearing": O.BearingObservation, "terrain": O.TerrainAltitudeObservation}
+        assert type(obj := obs) is cls[option] and obj.noise_std == sc.network.meas_std
+        if option == "terrain":
+            assert obs.elevation.equal(sc.terrain.z) and obs.resolution == sc.terrain.resolution and obs.noise_std == 4.0
+        else:
+            assert obs.sensors.equal(sc.sensors) and obs.noise_std == 5.0
+            assert obs.samples == sc.num_samples
+        if option == "sensor":  # on Yu's scenario: the linear position sensor, sigma_nu its sensors'
+            _, yu, net = world
+            lin = build_observation(cfg.observation, net, F64, CPU, yu)
+            assert type(lin) is LinearPositionObservation and lin.noise_std == 0.2
+        return
     _, scenario, network = world
     obs = build_observation(cfg.observation, network, F64, CPU)
     assert type(obs) is {"linear": LinearPositionObservation, "gp": GPObservation}[option]
@@ -394,8 +419,9 @@ def _check_method(option, cfg, world):
         head, rest = "ukf_mm", option.removeprefix("ukf_mm_")
     if option.endswith("_backprop"):  # a preset's parts, its numbers learned by backpropagation
         base = option.removesuffix("_backprop")
-        assert {k: cfg[k] for k in ("filter", "model", "observation", "consensus")} == \
-            {k: _compose(f"method={base}")[k] for k in ("filter", "model", "observation", "consensus")}
+        assert {k: cfg[k] for k in ("filter", "model", "consensus")} == \
+            {k: _compose(f"method={base}")[k] for k in ("filter", "model", "consensus")}
+        assert cfg.observation == _compose().observation  # the linear position sensor (whose R it learns)
         plain = _compose("learner=backprop").learner
         if option == "ekf_lin_hybrid_backprop":
             assert cfg.learner == plain
@@ -409,8 +435,9 @@ def _check_method(option, cfg, world):
         return
     if option.endswith("_calibrated"):  # a preset's parts, a scale of Q and of R fitted to the training innovations
         base = option.removesuffix("_calibrated")
-        assert {k: cfg[k] for k in ("filter", "model", "observation", "consensus")} == \
-            {k: _compose(f"method={base}")[k] for k in ("filter", "model", "observation", "consensus")}
+        assert {k: cfg[k] for k in ("filter", "model", "consensus")} == \
+            {k: _compose(f"method={base}")[k] for k in ("filter", "model", "consensus")}
+        assert cfg.observation == _compose().observation  # the linear position sensor (whose R it learns)
         assert cfg.learner == _compose("learner=calibrate").learner  # the learner's own settings, unchanged
         return
     if option in ("fg_ekf", "rbpf_em"):  # Jiang's / Braga's method: its filter option (and the statistics part)
@@ -436,7 +463,8 @@ def _check_method(option, cfg, world):
     assert cfg.learner == _compose(f"learner={learner}").learner
     assert fusion in PRESET_FUSIONS and cfg.consensus == _compose(f"consensus={fusion}").consensus
     assert cfg.model == _compose(f"model={PRESET_MODELS[model]}").model
-    assert cfg.observation == _compose().observation  # the linear position sensor
+    # LIN: the scenario's own sensor model (observation=sensor); the walkers' models: the linear position sensor
+    assert cfg.observation == (_compose("observation=sensor").observation if model == "lin" else _compose().observation)
 
 
 LEARNER_CLASSES = {"online": "OnlineLearning", "offline": "OfflineLearning", "none": "NoLearning",
@@ -488,7 +516,7 @@ EXPECTED_OPTIONS = {"data": {"paper", "small"}, "learner": set(LEARNER_CLASSES),
                        "ukf_mm_gp_hybrid", "pf_gp_hybrid", "ekf_sfm_hybrid_backprop", "ekf_gp_hybrid_backprop",
                        "ekf_lstm_hybrid_backprop", "ekf_lin_hybrid_calibrated", "ekf_sfm_hybrid_calibrated",
                        "ekf_gp_hybrid_calibrated", "ekf_lstm_hybrid_calibrated"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
-                    "observation": {"linear", "gp"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
+                    "observation": {"linear", "gp", "sensor", "squared_range", "range", "bearing", "terrain"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
                     "network": {"yu", "yu_blind"},
                     "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1",
                                  "corridor", "jiang", "braga"}}
@@ -582,7 +610,11 @@ def test_motion_model_contract(option, yu_world):
 @pytest.mark.parametrize("option", _options("observation"))
 def test_observation_model_contract(option, yu_world):
     cfg, scenario, network = yu_world
-    obs = build_observation(_compose(f"observation={option}").observation, network, torch.float64, torch.device("cpu"))
+    if option == "terrain":  # the map is Braga's
+        scenario = build_scenario(_compose("task=matrix", "method=rbpf_em", "scenario=braga"))
+        network = scenario.network
+    obs = build_observation(_compose(f"observation={option}").observation, network, torch.float64, torch.device("cpu"),
+                            scenario)
     assert isinstance(obs, ObservationModel)
     s, a = network.num_nodes, scenario.num_agents
     y = torch.randn(s, a, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(1)) + 4.0

@@ -122,12 +122,20 @@ def test_a_cell_that_does_not_fit_is_refused_before_any_work():
     from dslearn.methods.dgpt import DGPTMethod
     from dslearn.methods.distributed import DistributedFilter
 
+    from dslearn.fusion.strategies import HybridConsensus
+    from dslearn.models.observation import LinearPositionObservation
+
     spec = ScenarioSpec("jiang_like", "squared_range", 1, "param2d", 1.0, 10, networked=False)
-    assert "needs measurement position; scenario jiang_like has squared_range" in DistributedFilter.fits(None, spec)
     assert "needs measurement position; scenario jiang_like has squared_range" in DGPTMethod.fits(None, spec)
-    assert DistributedFilter.fits(None, ScenarioSpec("x", "position", 2, "pv2d", 1.0, 5, networked=False)) == (
-        "the distributed filter (position sensors, agents [p, v] in 2-D, a network) needs networked True; "
-        "scenario x has False")
+    # the distributed filter takes squared ranges (its observation part declares which readings it explains)
+    assert DistributedFilter.spec_misfit(spec) is None
+    assert "observation=linear explains readings of the targets' positions; scenario jiang_like measures " \
+           "squared_range" in LinearPositionObservation.spec_misfit(spec)
+    assert "needs measurement position or squared_range or range or bearing or terrain_altitude; scenario x has " \
+           "sonar" in DistributedFilter.spec_misfit(ScenarioSpec("x", "sonar", 2, "pv2d", 1.0, 5))
+    # a consensus over the links needs a graph (the fusion part declares it)
+    assert "the sensors of scenario x have none" in HybridConsensus.spec_misfit(
+        ScenarioSpec("x", "position", 2, "pv2d", 1.0, 5, networked=False))
 
 
 def test_dslearn_run_refuses_a_cell_that_does_not_fit():

@@ -14,7 +14,7 @@ from dslearn.filters.information import novel_information, predict
 from dslearn.filters.smoother import transition_error_moments
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.network import SensorNetwork
-from dslearn.types import AGENT_DIM, StepContext, agents, safe_cholesky, symmetrize
+from dslearn.types import AGENT_DIM, StepContext, agents, safe_cholesky, spd_inverse, symmetrize
 
 
 def _measurements_only(ep) -> None:
@@ -92,6 +92,79 @@ def first_observations(ep: Measurements, network: SensorNetwork, dt: float) -> t
     return (diag * y0).flatten(-2), torch.diag_embed(diag.flatten(-2))
 
 
+#: a start the scenario declares known to its navigators (Braga's aircraft: ``scenario.initial_states()``) is believed
+#: to within this standard deviation, in metres for a position and metres per second for a velocity (the
+#: information filter needs finite information; the particle filters start every particle there)
+KNOWN_START_STD = 1.0
+#: Gauss-Newton iterations of the first fix of a nonlinear sensor (:func:`first_fix`)
+FIX_ITERATIONS = 20
+
+
+def known_start(start: Tensor, shape: tuple[int, ...], std: float = KNOWN_START_STD) -> tuple[Tensor, Tensor]:
+    """The belief at a known start ``(A, d)`` (every target's block): ``mean (*shape, A d)``, information
+    ``std^-2 I`` (``*shape, A d, A d``)."""
+    mean = start.flatten()
+    info = torch.diag_embed(torch.full_like(mean, std**-2))
+    return mean.expand(*shape, -1).clone(), info.expand(*shape, -1, -1).clone()
+
+
+def _iterated_update(ep: Measurements, t: int, obs: ObservationModel, fusion: Fusion, mean: Tensor, q0: Tensor,
+                     o0: Tensor, iterations: int) -> tuple[Tensor, Tensor]:
+    r"""The iterated extended information update of the prior ``(q0, o0)`` with the readings at step ``t``
+    (Gauss-Newton on the posterior mode): linearised at the current mean, fused, solved, ``iterations`` times."""
+    o = o0
+    for _ in range(iterations):
+        dq, do = novel_information(mean, ep.meas[:, :, t], ep.visible[:, :, t], obs)
+        q, o = fusion(q0, o0, dq, do)
+        o = symmetrize(o)
+        mean = torch.cholesky_solve(q.unsqueeze(-1), safe_cholesky(o)).squeeze(-1)
+    return mean, o
+
+
+def first_fix(ep: Measurements, dt: float, fusion: Fusion, obs: ObservationModel, m0: Tensor, o0: Tensor,
+              iterations: int = FIX_ITERATIONS) -> tuple[Tensor, Tensor]:
+    r"""The first belief from a nonlinear sensor's first two readings (squared ranges, ranges, ...), the analogue of
+    :func:`first_observations`: from the diffuse prior ``(m0, o0)`` the iterated update (:func:`_iterated_update`,
+    with the run's fusion) fixes every target's position at ``t = 0`` (:math:`p^0`, covariance :math:`P^0`) and at
+    ``t = 1`` (:math:`p^1`, :math:`P^1`); the belief is :math:`(p^0, (p^1 - p^0)/\Delta t)` with the position's
+    information :math:`(P^0)^{-1}` and the velocity's :math:`(\Delta t^2) (P^0 + P^1)^{-1}` (the cross-covariance
+    left out, as in Yu et al.'s initialisation), for target blocks ``[px, py, vx, vy]``; a block of two entries
+    (a position alone) takes :math:`p^0`, :math:`(P^0)^{-1}`. Where the fusion gives a node too little to fix a
+    position (one range alone) its fix is as vague as its readings make it."""
+    a = ep.meas.shape[-2]
+    q0 = (o0 @ m0.unsqueeze(-1)).squeeze(-1)
+    p_mean0, o_0 = _iterated_update(ep, 0, obs, fusion, m0, q0, o0, iterations)
+    p_mean1, o_1 = _iterated_update(ep, 1, obs, fusion, p_mean0, q0, o0, iterations)
+    d = m0.shape[-1] // a
+    pos = torch.arange(a, device=m0.device).unsqueeze(-1) * d + torch.arange(2, device=m0.device)  # (A, 2)
+
+    def pos_cov(o):  # (S, B, A, 2, 2): every target's position block of o^-1
+        P = torch.cholesky_inverse(safe_cholesky(o))
+        return P[..., pos.unsqueeze(-1), pos.unsqueeze(-2)]
+
+    P0, P1 = pos_cov(o_0), pos_cov(o_1)
+    x0 = agents_of(p_mean0, a)[..., :2]
+    x1 = agents_of(p_mean1, a)[..., :2]
+    mean = agents_of(m0, a).clone()
+    mean[..., :2] = x0
+    blocks = torch.zeros(*mean.shape, d, dtype=m0.dtype, device=m0.device)
+    blocks[..., :2, :2] = spd_inverse(P0)
+    if d >= 4:
+        mean[..., 2:4] = (x1 - x0) / dt
+        blocks[..., 2:4, 2:4] = spd_inverse(P0 + P1) * dt**2
+        idx = torch.arange(4, d, device=m0.device)  # entries beyond [p, v]: the (diagonal) diffuse prior's
+        blocks[..., idx, idx] = o0.diagonal(dim1=-2, dim2=-1).unflatten(-1, (a, d))[..., 4:]
+    info = torch.zeros(*mean.shape[:-2], a * d, a * d, dtype=m0.dtype, device=m0.device)
+    for j in range(a):
+        info[..., j * d:(j + 1) * d, j * d:(j + 1) * d] = blocks[..., j, :, :]
+    return mean.flatten(-2), symmetrize(info)
+
+
+def agents_of(x: Tensor, num_agents: int) -> Tensor:
+    """A joint state ``(*B, A d)`` as ``(*B, A, d)`` (a view)."""
+    return x.unflatten(-1, (num_agents, -1))
+
+
 def initial_belief(
     ep: Measurements,
     network: SensorNetwork,
@@ -100,6 +173,8 @@ def initial_belief(
     area,
     prior_pos_std: float = 1000.0,
     prior_vel_std: float = 1000.0,
+    obs: ObservationModel | None = None,
+    start: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     r"""Initial belief of every node: the diffuse prior fused with the first observations.
 
@@ -111,12 +186,22 @@ def initial_belief(
     about a target keeps the diffuse prior, finite and uninformative (a learning gate,
     ``filter.learn_gate_std``, keeps such estimates out of its data set).
 
+    A sensor that does not measure positions (``obs.measures_position`` false: squared ranges, the terrain
+    altitude) gives no first observations of that kind: every node starts at the scenario's known ``start``
+    (``(A, d)``, :func:`known_start`) where the scenario declares one (Braga's aircraft), else from the first fix of
+    its first two readings fused with the run's fusion (:func:`first_fix`).
+
     Returns:
         ``mean (S, B, Dx)``, ``info (S, B, Dx, Dx)``.
     """
     _measurements_only(ep)
     s, b = network.num_nodes, len(ep)
     a = ep.meas.shape[-2]
+    if obs is not None and not obs.measures_position:
+        if start is not None:
+            return known_start(start.to(ep.meas.device, ep.meas.dtype), (s, b))
+        m0, o0 = diffuse_prior(a, area, prior_pos_std, prior_vel_std, (s, b), ep.meas.dtype, ep.meas.device)
+        return first_fix(ep, dt, fusion, obs, m0, o0)
     m0, o0 = diffuse_prior(a, area, prior_pos_std, prior_vel_std, (s, b), ep.meas.dtype, ep.meas.device)
     q0 = (o0 @ m0.unsqueeze(-1)).squeeze(-1)
     dq, do = first_observations(ep, network, dt)

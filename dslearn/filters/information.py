@@ -14,7 +14,7 @@ from torch import Tensor
 
 from dslearn.diagnostics import record_gate
 from dslearn.models.base import MotionModel, ObservationModel
-from dslearn.types import AGENT_DIM, StepContext, safe_cholesky, spd_inverse, symmetrize
+from dslearn.types import StepContext, safe_cholesky, spd_inverse, symmetrize
 
 
 def to_moment(q: Tensor, omega: Tensor) -> tuple[Tensor, Tensor]:
@@ -86,7 +86,8 @@ def novel_information(
 ) -> tuple[Tensor, Tensor]:
     r"""Novel information of each node's measurements (Algorithm 2 lines 7–11).
 
-    For each target ``j`` a node sees: :math:`\bar z = z - h(\hat y_j) + C \hat y_j`,
+    For each target ``j`` a node sees: :math:`\bar z = z - h(\hat y_j) + C \hat y_j` (the extended information
+    filter's update with the observation model's Jacobian ``C``: linear or not, e.g. a squared range),
     :math:`\delta q = \sum_j C_j^T R_j^{-1} \bar z_j`, :math:`\delta\Omega = \sum_j C_j^T R_j^{-1} C_j`,
     with :math:`C_j` the Jacobian placed in target ``j``'s block. A node that sees nothing
     contributes zero.
@@ -98,18 +99,21 @@ def novel_information(
     Tested and rejected measurements are recorded in the open :class:`~dslearn.diagnostics.Diagnostics`.
 
     Args:
-        y_pred: ``(S, B, Dx)``; meas: ``(S, B, A, 2)``; visible: ``(S, B, A)`` bool.
+        y_pred: ``(S, B, Dx)``; meas: ``(S, B, A, C)`` the raw channels (``obs.reading`` makes them the
+            ``Dz`` the model explains: the position, or ``L`` squared-range samples averaged); visible: ``(S, B, A)``.
         gate_prob: chi-square gate probability, ``None`` = no gating (the paper).
         omega_pred: ``(S, B, Dx, Dx)`` prior information (for the innovation covariance).
     Returns:
         ``(dq (S, B, Dx), domega (S, B, Dx, Dx))``.
     """
-    yj = y_pred.unflatten(-1, (-1, AGENT_DIM))  # (S, B, A, 4)
+    yj = y_pred.unflatten(-1, (meas.shape[-2], -1))  # (S, B, A, d): d = 4 for [px, py, vx, vy]
+    z = obs.reading(meas)  # (S, B, A, Dz): the raw channels the model explains (samples averaged)
     h, C, R = obs.linearize(yj)
+    nu = obs.residual(z, h)  # z - h (an angle wrapped)
     if gate_prob is not None:
-        visible = _gate(meas - h, C, R, omega_pred, visible, gate_prob)
-    Rinv_C = torch.linalg.solve(R, C)  # (S, B, A, 2, 4)
-    zbar = meas - h + (C @ yj.unsqueeze(-1)).squeeze(-1)
+        visible = _gate(nu, C, R, omega_pred, visible, gate_prob)
+    Rinv_C = torch.linalg.solve(R, C)  # (S, B, A, Dz, d)
+    zbar = nu + (C @ yj.unsqueeze(-1)).squeeze(-1)
     m = visible.to(y_pred.dtype)
     dq_blocks = (C.transpose(-1, -2) @ torch.linalg.solve(R, zbar.unsqueeze(-1))).squeeze(-1) * m.unsqueeze(-1)
     dO_blocks = (C.transpose(-1, -2) @ Rinv_C) * m.unsqueeze(-1).unsqueeze(-1)  # (S, B, A, 4, 4)
@@ -132,9 +136,10 @@ def _gate(nu: Tensor, C: Tensor, R: Tensor, omega_pred: Tensor | None, visible: 
     S_cov = R
     if omega_pred is not None:
         s, b, dx = omega_pred.shape[:3]
-        a = dx // AGENT_DIM
-        P = torch.cholesky_inverse(safe_cholesky(omega_pred)).view(s, b, a, AGENT_DIM, a, AGENT_DIM)
-        Pjj = torch.diagonal(P, dim1=2, dim2=4).permute(0, 1, 4, 2, 3)  # (S, B, A, 4, 4)
+        d = C.shape[-1]
+        a = dx // d
+        P = torch.cholesky_inverse(safe_cholesky(omega_pred)).view(s, b, a, d, a, d)
+        Pjj = torch.diagonal(P, dim1=2, dim2=4).permute(0, 1, 4, 2, 3)  # (S, B, A, d, d)
         S_cov = symmetrize(C @ Pjj @ C.transpose(-1, -2) + R)
     d2 = (nu.unsqueeze(-2) @ torch.linalg.solve(S_cov, nu.unsqueeze(-1))).squeeze(-1).squeeze(-1)
     ok = d2 <= chi2_quantile(prob, nu.shape[-1])

@@ -45,6 +45,25 @@ class Fusion:
     config_reads: tuple[str, ...] = ("iterations", "weights", "omega")
     config_unread = "it reads iterations, weights and omega"
     uses_links = True
+    #: whether a node fuses only its own readings (no fusion with any other node)
+    alone = False
+
+    @classmethod
+    def spec_misfit(cls, spec) -> str | None:
+        """What the fusion needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`): a strategy that
+        sends information over the network's links needs a communication graph between the nodes, and nodes that
+        share something to agree on (not nodes navigating themselves, ``spec.kind == "self"``)."""
+        if not cls.uses_links:
+            return None
+        if not spec.networked:
+            return (f"consensus={cls.name} exchanges information with neighbours over a communication graph; the "
+                    f"sensors of scenario {spec.name} have none (they report to a fusion centre: consensus=centralized)")
+        if spec.kind == "self":
+            return (f"consensus={cls.name} makes the nodes agree on the targets they all track; on scenario {spec.name} "
+                    f"every node navigates itself (no node measures another's platform), so each platform's "
+                    f"information has one source and consensus rounds only mix it with the neighbours' predictions "
+                    f"(consensus=individual: each node alone; centralized gives each node its own the same)")
+        return None
 
     def __init__(self, weights: Tensor, iterations: int = 4, omega: float | str = "one"):
         if int(iterations) != iterations or iterations < 0:
@@ -88,6 +107,7 @@ class Individual(Fusion):
     config_reads = ()
     config_unread = "each node alone: no consensus rounds"
     uses_links = False
+    alone = True
 
     def __call__(self, q_pred, o_pred, dq, do, wl=None):
         return q_pred + dq, symmetrize(o_pred + do)

@@ -27,7 +27,7 @@ from dslearn.methods.base import require
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.network import SensorNetwork
 from dslearn.errors import ConfigError
-from dslearn.types import AGENT_DIM, agents, safe_cholesky
+from dslearn.types import AGENT_DIM, safe_cholesky
 
 _LOG = logging.getLogger(__name__)
 
@@ -174,15 +174,34 @@ class DistributedFilter:
 
     @staticmethod
     def spec_misfit(spec: ScenarioSpec) -> str | None:
-        """What the engine needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`)."""
-        return require(spec, "the distributed filter (position sensors, agents [p, v] in 2-D, a network)",
-                       measurement="position", state="pv2d", networked=True)
+        """What the engine needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`): 2-D target
+        positions to estimate, read by sensors its observation models explain (the observation part declares which
+        kind it explains), targets seen by the network or nodes navigating themselves. What a fusion needs of the
+        network (a graph for consensus) the fusion part declares."""
+        return require(spec, "the distributed filter (readings of a kind its observation models explain, 2-D "
+                             "positions to estimate)", measurement=MEASUREMENT_KINDS, state=STATE_LAYOUTS,
+                       kind=("targets", "self"))
 
     def fits(self, spec: ScenarioSpec) -> str | None:
         reason = DistributedFilter.spec_misfit(spec)
+        if reason is None and spec.kind == "targets" and getattr(self.fusion, "alone", False) \
+                and self.observation.meas_dim < 2:
+            reason = (f"with consensus={self.fusion.name} every node fuses only its own readings; one scalar "
+                      f"{spec.measurement} reading per step (observation {type(self.observation).__name__}) does "
+                      f"not fix a target's 2-D position (a curve of positions fits it): the sensors must fuse "
+                      f"(consensus=centralized)")
         # a prediction step that needs a kind of motion model (filter=adf: the exact GP; filter=ukf_mm: a GP)
         misfit = getattr(self.predict, "model_misfit", None) if reason is None else None
         return reason if misfit is None else misfit(self.model, self.model_name)
+
+    def _init(self, scenario: Scenario, network: SensorNetwork, ctx, fusion: Fusion, obs: ObservationModel):
+        """``init(measurements) -> (mean, info)``: :func:`~dslearn.filters.distributed.initial_belief` with the
+        observation model and, where the scenario declares its nodes' known start (``initial_states()``, one block
+        ``[p, v]`` per platform: Braga's aircraft), that start."""
+        start = getattr(scenario, "initial_states", None)
+        start = start() if callable(start) and not obs.measures_position else None
+        return lambda ep: initial_belief(ep, network, ctx.dt, fusion, scenario.area, self.prior_pos_std,
+                                         self.prior_vel_std, obs=obs, start=start)
 
     def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
                  seed: int) -> Estimates:
@@ -190,9 +209,7 @@ class DistributedFilter:
 
         def online(model, obs, fusion):
             return OnlineLearner(
-                network, model, obs, fusion, ctx,
-                init=lambda ep: initial_belief(ep, network, ctx.dt, fusion, scenario.area, self.prior_pos_std,
-                                               self.prior_vel_std),
+                network, model, obs, fusion, ctx, init=self._init(scenario, network, ctx, fusion, obs),
                 predict_step=self.predict, learn_gate_std=self.learn_gate_std,
             )
 
@@ -209,7 +226,9 @@ class DistributedFilter:
         if kind in ("online", "offline") and learner.learnable:  # Algorithm 1 (offline: a learning observation model)
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())  # no evaluation at checkpoints
         res = learner.estimate(test)
-        return beliefs_to_estimates(res.mean, res.info, network)
+        if scenario.spec.kind == "self":  # each node's estimate of its own platform: one report of every platform
+            return own_estimates(res.mean, res.info, scenario.spec.num_agents)
+        return beliefs_to_estimates(res.mean, res.info, network, scenario.spec.num_agents)
 
 
 def natural_learner(model: MotionModel, observation: ObservationModel):
@@ -246,11 +265,45 @@ def backprop_misfit(model: MotionModel, observation: ObservationModel, predict=N
     return None
 
 
-def beliefs_to_estimates(mean: torch.Tensor, info: torch.Tensor, network: SensorNetwork) -> Estimates:
-    """Information-form beliefs of every node, ``mean (S, B, K+1, 4A)``, ``info (S, B, K+1, 4A, 4A)``, as
-    position estimates and their covariances (the position blocks of ``info^-1``)."""
+def _positions(mean: torch.Tensor, info: torch.Tensor, num_agents: int | None):
+    """Every target's position ``(..., A, 2)`` and its covariance ``(..., A, 2, 2)`` (the position block of
+    ``info^-1``), for target blocks whose first two entries are the position (``d = Dx / A`` entries each)."""
     cov = torch.cholesky_inverse(safe_cholesky(info))
-    a = mean.shape[-1] // AGENT_DIM
-    blocks = cov.unflatten(-2, (a, AGENT_DIM)).unflatten(-1, (a, AGENT_DIM))  # (..., A, 4, A, 4)
+    a = mean.shape[-1] // AGENT_DIM if num_agents is None else int(num_agents)
+    d = mean.shape[-1] // a
+    blocks = cov.unflatten(-2, (a, d)).unflatten(-1, (a, d))  # (..., A, d, A, d)
     pos_cov = torch.diagonal(blocks, dim1=-4, dim2=-2).movedim(-1, -3)[..., :2, :2]  # (..., A, 2, 2)
-    return Estimates(agents(mean)[..., :2], pos_cov, list(network.names), network.is_sensor.clone())
+    return mean.unflatten(-1, (a, d))[..., :2], pos_cov
+
+
+def beliefs_to_estimates(mean: torch.Tensor, info: torch.Tensor, network: SensorNetwork,
+                         num_agents: int | None = None) -> Estimates:
+    """Information-form beliefs of every node, ``mean (S, B, K+1, Dx)``, ``info (S, B, K+1, Dx, Dx)`` (``A`` target
+    blocks, ``[px, py, vx, vy]`` each where ``num_agents`` is not given), as position estimates and their
+    covariances (the position blocks of ``info^-1``)."""
+    pos, pos_cov = _positions(mean, info, num_agents)
+    return Estimates(pos, pos_cov, list(network.names), network.is_sensor.clone())
+
+
+#: the report of nodes that navigate themselves: every platform estimated by its own node's filter
+ONBOARD = "onboard"
+
+
+def own_estimates(mean: torch.Tensor, info: torch.Tensor, num_agents: int) -> Estimates:
+    """Beliefs of nodes that navigate themselves (node ``s`` estimates platform ``s``): node ``s``'s estimate of its
+    own platform, gathered as one report of the ``A = S`` platforms (``nodes = ["onboard"]``, as Braga's RBPF
+    method reports)."""
+    pos, pos_cov = _positions(mean, info, num_agents)  # (S, B, K+1, A, 2)
+    s = pos.shape[0]
+    if s != num_agents:
+        raise ValueError(f"nodes that navigate themselves: {s} nodes for {num_agents} platforms")
+    idx = torch.arange(s, device=pos.device)
+    own = pos[idx, :, :, idx].movedim(0, -2)[None]  # (1, B, K+1, A, 2)
+    own_cov = pos_cov[idx, :, :, idx].movedim(0, -3)[None]  # (1, B, K+1, A, 2, 2)
+    return Estimates(own, own_cov, [ONBOARD], torch.ones(1, dtype=torch.bool))
+
+
+#: the measurement kinds its observation models explain (the observation part declares which one it takes)
+MEASUREMENT_KINDS = ("position", "squared_range", "range", "bearing", "terrain_altitude")
+#: the state layouts it estimates positions in: Yu's walkers, a 2-D parameter (Jiang's source), platforms (Braga's)
+STATE_LAYOUTS = ("pv2d", "param2d", "platform")

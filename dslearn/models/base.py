@@ -160,6 +160,20 @@ class ObservationModel(nn.Module, abc.ABC):
 
     meas_dim: int = 2
     learnable: bool = False
+    #: whether it measures the targets' positions directly (a node's first two readings then give it a first
+    #: estimate of a target, :func:`dslearn.filters.distributed.first_observations`); a nonlinear sensor does not
+    measures_position: bool = True
+    #: whether :meth:`forward` is linear in the state (a filter's statistical linearisation then changes nothing)
+    linear: bool = False
+
+    def reading(self, meas: Tensor) -> Tensor:
+        """The measurement ``z (*B, Dz)`` this model explains, from a scenario's raw channels ``(*B, C)`` (its
+        samples averaged, its auxiliary channels left out); the raw channels themselves by default."""
+        return meas
+
+    def residual(self, z: Tensor, h: Tensor) -> Tensor:
+        """``z - h`` in the measurement's own geometry (an angle is wrapped to (-pi, pi])."""
+        return z - h
 
     @abc.abstractmethod
     def forward(self, y: Tensor) -> Tensor: ...

@@ -122,7 +122,7 @@ class TerrainScenario:
     @property
     def spec(self) -> ScenarioSpec:
         """Four platforms navigating by terrain altitude over a communication graph."""
-        return ScenarioSpec(self.name, "terrain_altitude", NUM_AIRCRAFT, "platform", self.dt, self.steps)
+        return ScenarioSpec(self.name, "terrain_altitude", NUM_AIRCRAFT, "platform", self.dt, self.steps, kind="self")
 
     def ctx(self) -> StepContext:
         return StepContext(dt=self.dt)
