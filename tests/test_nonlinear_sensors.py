@@ -156,6 +156,53 @@ def test_extended_information_update_matches_filterpy_ekf():
     assert (mean - x_bar).abs()[:2].min() > 1e-2 and torch.linalg.det(cov) < 1e-3 * torch.linalg.det(P)
 
 
+@pytest.mark.parametrize("kind", ["squared_range", "bearing"])
+def test_unscented_update_matches_filterpy_ukf(kind):
+    """One sensor (squared range with L = 5 samples, or a bearing), a correlated prior: the statistical
+    linearisation in the information update equals filterpy's UKF update with the same sigma points (alpha = 1,
+    beta = 2, kappa = 0; for the squared range the 5 samples stacked); and it differs from the extended update."""
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    from dslearn.filters.ukf import UnscentedPredict
+
+    g = torch.Generator().manual_seed(5)
+    sensor = torch.tensor([[10.0, 5.0]], dtype=F64)
+    L = 5 if kind == "squared_range" else 1
+    sigma = 5.0 if kind == "squared_range" else 0.05
+    obs = SquaredRangeObservation(sensor, sigma, L) if kind == "squared_range" else BearingObservation(sensor, sigma)
+    x_bar = torch.tensor([7.8, 1.1, 0.0, 0.5], dtype=F64)
+    A = torch.randn(4, 4, generator=g, dtype=F64)
+    P = A @ A.T + torch.diag(torch.tensor([0.5, 0.8, 0.2, 0.3], dtype=F64))
+    x_true = torch.tensor([7.0, 2.0, 0.3, -0.2], dtype=F64)
+    z1 = obs(x_true.reshape(1, 4))[0]
+    samples = z1 + sigma * torch.randn(L, generator=g, dtype=F64)
+    omega = torch.linalg.inv(P).reshape(1, 1, 4, 4)
+    y = x_bar.reshape(1, 1, 4)
+    step = UnscentedPredict()
+    lin = step.observation_linearization(obs, y, omega, 1)
+    meas = samples.reshape(1, 1, 1, L)
+    vis = torch.ones(1, 1, 1, dtype=torch.bool)
+    dq, do = novel_information(y, meas, vis, obs, linearized=lin)
+    q, o = Individual(torch.eye(1, dtype=F64))((omega @ y.unsqueeze(-1)).squeeze(-1), omega, dq, do)
+    mean, cov = torch.linalg.solve(o[0, 0], q[0, 0]), torch.linalg.inv(o[0, 0])
+
+    def hx(x):
+        return obs(torch.as_tensor(x, dtype=F64).reshape(1, 4))[0].repeat(L).numpy()
+
+    ukf = UnscentedKalmanFilter(dim_x=4, dim_z=L, dt=1.0, hx=hx, fx=lambda x, dt: x,
+                                points=MerweScaledSigmaPoints(4, alpha=1.0, beta=2.0, kappa=0.0))
+    if kind == "bearing":  # the UKF's own residual, wrapped
+        ukf.residual_z = lambda a, b: (a - b + math.pi) % (2 * math.pi) - math.pi
+    ukf.x, ukf.P, ukf.Q = x_bar.numpy().copy(), P.numpy().copy(), torch.zeros(4, 4, dtype=F64).numpy()
+    ukf.R = sigma**2 * torch.eye(L, dtype=F64).numpy()
+    ukf.predict()  # the identity with Q = 0: the sigma points of the prior, the prior unchanged
+    ukf.update(samples.numpy())
+    torch.testing.assert_close(mean, torch.as_tensor(ukf.x, dtype=F64), rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(cov, torch.as_tensor(ukf.P, dtype=F64), rtol=1e-8, atol=1e-10)
+    ext_q, _ = novel_information(y, meas, vis, obs)
+    assert (ext_q - dq).abs().max() > 1e-6 * dq.abs().max()  # the statistical linearisation is not the Jacobian's
+
+
 def test_first_fix_finds_the_source_from_the_diffuse_prior():
     """Jiang's sensors, the source 40 m from where the diffuse prior puts it: the iterated update of the first two
     readings fixes its position and velocity (Gauss-Newton from far off)."""

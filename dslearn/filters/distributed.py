@@ -240,7 +240,9 @@ def track(
             (vague prior -> fused estimate) pairs that corrupt its GP wherever the vague prior sits.
         predict_step: the filter's prediction step (``filter.predict``: EKF linearisation, the
             default, or :class:`~dslearn.filters.ukf.UnscentedPredict`), called like
-            :func:`~dslearn.filters.information.predict`.
+            :func:`~dslearn.filters.information.predict`. The unscented one also linearises a nonlinear
+            sensor statistically (its ``observation_linearization``: the UKF's update); with a linear or
+            learned observation model the update is the extended one.
     """
     _measurements_only(ep)
     if learn and len(ep) != 1:
@@ -251,9 +253,15 @@ def track(
     adapt = learn and bool(getattr(model, "adapts_noise", False))
     pred_log = []  # (y_pred, P_pred, F, Q) per step, for the process-noise EM step
     informed = torch.ones(network.num_nodes, dtype=torch.bool, device=ep.meas.device)
+    # the UKF's measurement step for a nonlinear sensor that learns nothing (the linear sensor: the same update)
+    slr = getattr(predict_step, "observation_linearization", None)
+    if obs.linear or obs.learnable:
+        slr = None
     for t in range(1, steps + 1):
         y_pred, q_pred, o_pred, *pq = (predict_step or predict)(y, o, model, ctx, full=adapt)
-        dq, do = novel_information(y_pred, ep.meas[:, :, t], ep.visible[:, :, t], obs, gate_prob=gate_prob, omega_pred=o_pred)
+        lin = slr(obs, y_pred, o_pred, ep.meas.shape[-2]) if slr is not None else None
+        dq, do = novel_information(y_pred, ep.meas[:, :, t], ep.visible[:, :, t], obs, gate_prob=gate_prob,
+                                   omega_pred=o_pred, linearized=lin)
         q, o = fusion(q_pred, o_pred, dq, do)
         y_new = torch.cholesky_solve(q.unsqueeze(-1), safe_cholesky(o)).squeeze(-1)
         if learn:

@@ -83,6 +83,7 @@ def novel_information(
     obs: ObservationModel,
     gate_prob: float | None = None,
     omega_pred: Tensor | None = None,
+    linearized: tuple[Tensor, Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor]:
     r"""Novel information of each node's measurements (Algorithm 2 lines 7–11).
 
@@ -103,12 +104,14 @@ def novel_information(
             ``Dz`` the model explains: the position, or ``L`` squared-range samples averaged); visible: ``(S, B, A)``.
         gate_prob: chi-square gate probability, ``None`` = no gating (the paper).
         omega_pred: ``(S, B, Dx, Dx)`` prior information (for the innovation covariance).
+        linearized: ``(h, C, R)`` per target in place of ``obs.linearize`` at the prediction (the UKF's statistical
+            linearisation, :func:`~dslearn.filters.ukf.unscented_observation`).
     Returns:
         ``(dq (S, B, Dx), domega (S, B, Dx, Dx))``.
     """
     yj = y_pred.unflatten(-1, (meas.shape[-2], -1))  # (S, B, A, d): d = 4 for [px, py, vx, vy]
     z = obs.reading(meas)  # (S, B, A, Dz): the raw channels the model explains (samples averaged)
-    h, C, R = obs.linearize(yj)
+    h, C, R = obs.linearize(yj) if linearized is None else linearized
     nu = obs.residual(z, h)  # z - h (an angle wrapped)
     if gate_prob is not None:
         visible = _gate(nu, C, R, omega_pred, visible, gate_prob)

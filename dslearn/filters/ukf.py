@@ -226,6 +226,44 @@ def ukf_predict(
     return y_pred, q_pred, omega_pred, P_pred, F, Q
 
 
+def unscented_observation(obs, y_pred: Tensor, omega_pred: Tensor, num_agents: int, alpha: float = 1.0,
+                          beta: float = 2.0, kappa: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
+    r"""The unscented measurement step in information form: the observation model's statistical linearisation at
+    every target's predicted marginal :math:`\mathcal N(\hat y_j, P_{jj})`, :math:`P = (\Omega^{t|t-1})^{-1}`.
+
+    Sigma points :math:`\chi_k` of each target's block (:func:`sigma_points`, ``2d + 1`` points), through the
+    sensor, :math:`Z_k = h(\chi_k)`; :math:`\bar z = \sum_k w^m_k Z_k`,
+    :math:`P_{xz} = \sum_k w^c_k (\chi_k - \hat y_j)(Z_k - \bar z)^T`, :math:`P_{zz} = \sum_k w^c_k (Z_k - \bar z)(\cdot)^T`;
+    the regression :math:`H = P_{xz}^T P_{jj}^{-1}` and its residual added to the sensor's noise,
+    :math:`R' = R(\hat y_j) + P_{zz} - H P_{jj} H^T`. With ``(h, C, R) = (\bar z, H, R')`` the extended information
+    update (:func:`~dslearn.filters.information.novel_information`) is the UKF's update of one sensor exactly
+    (:math:`S = P_{zz} + R`, :math:`K = P_{xz} S^{-1}`); every node linearises its own sensor (the residuals of two
+    sensors are taken as uncorrelated). Differences of readings are the model's ``residual`` (an angle wraps).
+
+    Returns:
+        ``h (S, B, A, Dz)``, ``C (S, B, A, Dz, d)``, ``R (S, B, A, Dz, Dz)``.
+    """
+    a = int(num_agents)
+    d = y_pred.shape[-1] // a
+    P = spd_inverse(omega_pred)
+    yj = y_pred.unflatten(-1, (a, d))  # (S, B, A, d)
+    blocks = P.unflatten(-2, (a, d)).unflatten(-1, (a, d))  # (S, B, A, d, A, d)
+    Pjj = symmetrize(torch.diagonal(blocks, dim1=-4, dim2=-2).movedim(-1, -3))  # (S, B, A, d, d)
+    pts, wm, wc, L = _sigma_points(yj, Pjj, alpha, beta, kappa)  # (S, B, A, K, d)
+    zk = obs(pts)  # (S, B, A, K, Dz)
+    centre = zk[..., :1, :]
+    dzk = obs.residual(zk, centre)  # about the centre point's reading (an angle: no wrap inside the spread)
+    mean_dz = torch.einsum("k,...kz->...z", wm, dzk)
+    zbar = centre.squeeze(-2) + mean_dz
+    dz = dzk - mean_dz.unsqueeze(-2)
+    dx = pts - yj.unsqueeze(-2)
+    P_xz = dx.transpose(-1, -2) @ (wc.unsqueeze(-1) * dz)  # (S, B, A, d, Dz)
+    P_zz = dz.transpose(-1, -2) @ (wc.unsqueeze(-1) * dz)  # (S, B, A, Dz, Dz)
+    H = torch.cholesky_solve(P_xz, L).transpose(-1, -2)  # P_xz^T Pjj^-1
+    R = symmetrize(obs.noise_cov(yj) + P_zz - H @ P_xz)  # H Pjj H^T = H P_xz
+    return zbar, H, R
+
+
 @dataclass(frozen=True)
 class UnscentedPredict:
     """:func:`ukf_predict` with fixed parameters, callable like
@@ -266,6 +304,11 @@ class UnscentedPredict:
         reason = self.model_misfit(model, model_name)
         if reason is not None:
             raise ConfigError(reason)
+
+    def observation_linearization(self, obs, y_pred: Tensor, omega_pred: Tensor, num_agents: int):
+        """The unscented measurement step with these parameters (:func:`unscented_observation`): what the filter's
+        update takes for a nonlinear sensor (``obs.linear`` false) that learns nothing online."""
+        return unscented_observation(obs, y_pred, omega_pred, num_agents, self.alpha, self.beta, self.kappa)
 
     def __call__(self, mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext, full: bool = False):
         return ukf_predict(mean, omega, model, ctx, full, self.alpha, self.beta, self.kappa,

@@ -136,6 +136,8 @@ class LinearMotion(MotionModel):
 class LinearSensor(ObservationModel):
     """``z = y[:2] + nu``, ``nu ~ N(0, R)`` with ``R`` (2 x 2) a tensor (autograd follows it)."""
 
+    linear = True
+
     def __init__(self, r: Tensor):
         super().__init__()
         self.r = r

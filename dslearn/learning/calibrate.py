@@ -129,6 +129,14 @@ class ScaledSensor(ObservationModel):
         super().__init__()
         self.base = base
         self.scale = torch.as_tensor(scale, dtype=torch.float64)
+        # what the filter reads of a sensor, as the base declares it
+        self.meas_dim, self.linear, self.measures_position = base.meas_dim, base.linear, base.measures_position
+
+    def reading(self, meas: Tensor) -> Tensor:
+        return self.base.reading(meas)
+
+    def residual(self, z: Tensor, h: Tensor) -> Tensor:
+        return self.base.residual(z, h)
 
     def forward(self, y: Tensor) -> Tensor:
         return self.base(y)
