@@ -30,6 +30,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("fusion/",),
     ("models/",),
     ("sim/",),
+    ("association/",),
     ("filters/",),
     ("learning/",),
     ("methods/",),
