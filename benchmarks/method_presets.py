@@ -34,6 +34,11 @@ LEARNERS = {"lin": "none", "sfm": "none", "gp": "online", "lstm": "offline", "so
 #: the linear position sensor on Yu's and Liu's scenarios, the squared range on Jiang's, the terrain altitude on
 #: Braga's); the other models are sized for walkers seen by position sensors (observation=linear)
 OBSERVATIONS = {"lin": "sensor", "sfm": "linear", "gp": "linear", "lstm": "linear", "social_lstm": "linear"}
+#: model preset word -> the model's settings in every preset of that model (the matrix's recipe, not the paper's:
+#: the LSTMs train with early stopping on held-out training episodes, one fit instead of the fixed schedule's two,
+#: and in float32 inside the float64 filter; measured in experiments/matrix/README.md, "Where the time goes")
+MODEL_SETTINGS = {m: ("model:\n  schedule: early_stopping\n  patience: 5\n  weights_dtype: float32\n")
+                  for m in ("lstm", "social_lstm")}
 #: preset word -> (conf/consensus option, what it is)
 FUSIONS = {"individual": ("individual", "no fusion (each node alone)"),
            "hybrid": ("hybrid", "hybrid consensus (L = 4 rounds)"),
@@ -57,6 +62,7 @@ def presets() -> dict[str, str]:
                     f"  - override /observation: {OBSERVATIONS[m]}\n"
                     f"  - override /consensus: {c_opt}\n"
                     f"  - override /learner: {LEARNERS[m]}\n"
+                    + MODEL_SETTINGS.get(m, "")
                 )
     # the LIN hybrid filter with its numbers learned by backpropagation (learner=backprop: model=lin only)
     out["ekf_lin_hybrid_backprop.yaml"] = out["ekf_lin_hybrid.yaml"].replace(
