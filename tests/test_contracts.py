@@ -111,7 +111,9 @@ def _check_lstm(option, cfg, world):
                 pooling="none")
     assert {k: node[k] for k in want} == want
     option = _compose("model=lstm").model  # the motion-model option (Yu study, real-data tracking) agrees key by key
-    assert set(option) - set(node) == {"_target_", "_partial_", "name", "val_fraction", "process_noise", "train_on"}
+    # (weights_dtype: the motion model's own; the training app has its run-wide dtype)
+    assert set(option) - set(node) == {"_target_", "_partial_", "name", "val_fraction", "process_noise", "train_on",
+                                       "weights_dtype"}
     assert set(node) <= set(option) and {k: option[k] for k in node} == dict(node)
 
 
@@ -462,7 +464,10 @@ def _check_method(option, cfg, world):
     learner = {"gp": "online", "lstm": "offline", "social_lstm": "offline"}.get(model, "none")
     assert cfg.learner == _compose(f"learner={learner}").learner
     assert fusion in PRESET_FUSIONS and cfg.consensus == _compose(f"consensus={fusion}").consensus
-    assert cfg.model == _compose(f"model={PRESET_MODELS[model]}").model
+    # the LSTMs: the matrix's recipe (early stopping, float32 weights), every other key the model option's
+    recipe = {"schedule": "early_stopping", "patience": 5, "weights_dtype": "float32"} if "lstm" in model else {}
+    assert cfg.model == {**_compose(f"model={PRESET_MODELS[model]}").model, **recipe}
+    assert not recipe or all(cfg.model[k] != _compose(f"model={PRESET_MODELS[model]}").model[k] for k in recipe)
     # LIN: the scenario's own sensor model (observation=sensor); the walkers' models: the linear position sensor
     assert cfg.observation == (_compose("observation=sensor").observation if model == "lin" else _compose().observation)
 

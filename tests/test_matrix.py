@@ -175,7 +175,22 @@ def _expected_fit(preset_cfg, scenario) -> bool:
         return spec.measurement == "squared_range"
     if engine.endswith("RBPFMethod"):  # Braga's RBPF + online EM: terrain altimeters on a network
         return spec.measurement == "terrain_altitude" and spec.networked
-    ok = spec.measurement == "position" and spec.state == "pv2d" and spec.networked
+    if engine.endswith("RBPFModesMethod"):  # a Kalman filter of [p, v] per particle: linear position sensors
+        return spec.measurement == "position" and spec.state == "pv2d"
+    # the distributed filter: its observation model must explain the scenario's readings (observation=sensor is the
+    # scenario's own kind, linear explains positions); consensus needs a graph between nodes that see the same
+    # targets (Jiang's sensors report to a centre, Braga's aircraft each navigate themselves); one squared range per
+    # node cannot fix a 2-D position alone (individual on Jiang)
+    sensor = str(preset_cfg.observation._target_).endswith("scenario_sensor")
+    fusion = str(preset_cfg.consensus.name)
+    if spec.measurement == "position":
+        ok = spec.state == "pv2d" and spec.networked
+    elif spec.measurement == "squared_range":
+        ok = sensor and fusion == "centralized"
+    elif spec.measurement == "terrain_altitude":
+        ok = sensor and fusion in ("individual", "centralized")
+    else:
+        ok = False
     return ok and (str(preset_cfg.model.name) != "sfm" or hasattr(scenario, "sfm"))
 
 
@@ -214,9 +229,10 @@ def test_experiment_matrix_small_jobs_are_exactly_the_fitting_cells():
     # every family on every scenario without external data
     own = ("dgpt", "fg_ekf", "rbpf_em")  # engines of their own (no motion-model slot)
     models = {str(presets[o["method"]].model.name) for o in ov if not o["method"].startswith(own)}
-    assert {"lin", "sfm", "gp_increment"} <= models
+    assert {"lin", "sfm", "gp_increment", "lstm"} <= models
     assert all(any(o["method"].startswith(e) for o in ov) for e in own)
-    assert {o["scenario"] for o in ov} == {"yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "jiang", "braga", "corridor"}
+    assert {o["scenario"] for o in ov} == {"yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "jiang", "braga", "corridor",
+                                           "eth_zara1"}  # every simulated scenario and a recorded one
     steps = {str(presets[o["method"]].filter.predict._target_).rsplit(".", 1)[-1] for o in ov
              if not o["method"].startswith(own)}
     assert steps == {"ExtendedPredict", "UnscentedPredict"}

@@ -171,6 +171,7 @@ class ModelSchema(PartSchema):
     min_lr: Optional[float] = None
     val_fraction: Optional[float] = None
     process_noise: Optional[str] = None
+    weights_dtype: Optional[str] = None  # the LSTMs' weights: float32 | float64 | null (the run's dtype)
     train_on: Optional[str] = None  # offline models: truth | fused (real-data tracking only) | null (the study's recipe)
     # social force fitted offline (dslearn.learning.sfm_fit.FittedSocialForce.for_scenario; ranges: its factory)
     desired_steps: Optional[int] = None
