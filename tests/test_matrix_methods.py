@@ -242,16 +242,16 @@ def test_fits_and_reasons():
     assert rb.fits(SPECS["yu"]).endswith("scenario yu has position")
     unnetworked = ScenarioSpec("b2", "terrain_altitude", 4, "platform", 0.05, 10, networked=False)
     assert rb.fits(unnetworked).endswith("needs networked True; scenario b2 has False")
-    for name in ("jiang", "braga"):  # the existing methods' reasons (their fits need no parts)
-        want = f"needs measurement position; scenario {name} has {SPECS[name].measurement}"
-        assert DistributedFilter.fits(None, SPECS[name]).endswith(want)
+    for name in ("jiang", "braga"):  # DGPT's reasons (its fits need no parts); the distributed filter's engine
+        want = f"needs measurement position; scenario {name} has {SPECS[name].measurement}"  # reads them (sensor)
         assert DGPTMethod.fits(None, SPECS[name]).endswith(want)
+        assert DistributedFilter.spec_misfit(SPECS[name]) is None
 
 
 @pytest.mark.parametrize("overrides,needle", [
     (["method=fg_ekf", "scenario=braga"], "fg_ekf t=10 does not fit scenario braga: Jiang's"),
     (["method=rbpf_em", "scenario=jiang"], "rbpf_em consensus_10 does not fit scenario jiang: Braga"),
-    (["method=ekf_lin_hybrid", "scenario=jiang"], "ekf lin hybrid does not fit scenario jiang: the distributed filter"),
+    (["method=ekf_lin_hybrid", "scenario=jiang"], "ekf lin hybrid does not fit scenario jiang: consensus=hybrid exchanges information"),
     (["method=dgpt_gpoe", "scenario=braga"], "dgpt gpoe does not fit scenario braga: Liu's DGPT"),
     (["method=ekf_lin_hybrid", "scenario=yu_two_agents", "consensus=statistics"],
      "consensus=statistics is a cooperation on sufficient statistics"),

@@ -78,7 +78,7 @@ def test_a_matrix_sweep_of_the_users_preset_with_the_basic_launcher(tmp_path):
     assert list(cells["status"]) == ["run", "left_out", "does_not_fit"]
     assert list(cells["method"]) == ["ekf my_lin hybrid"] * 3 and cells["job"].tolist() == ["0", "", ""]
     assert cells["reason"].iloc[1].endswith("(task.left_out): the packaged one: not mine")
-    assert "needs measurement position; scenario jiang has squared_range" in cells["reason"].iloc[2]
+    assert "the sensors of scenario jiang have none" in cells["reason"].iloc[2]  # hybrid consensus needs a graph
     res = pd.read_csv(sweep / "0" / "results.csv")
     assert set(res["method"]) == {"ekf my_lin hybrid"} and set(res["scenario"]) == {"yu"}
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir() and p.name.isdigit()) == ["0"]
