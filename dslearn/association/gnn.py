@@ -35,6 +35,18 @@ def log_likelihood_ratios(d2: Tensor, s: Tensor, detection_probability: float, c
     return math.log(detection_probability) - math.log(clutter_density) + log_norm.unsqueeze(-1) - 0.5 * d2
 
 
+
+def gated_innovations(mean: Tensor, cov: Tensor, observation: ObservationModel, detections: Tensor,
+                      present: Tensor | None, gate_probability: float):
+    """What every associator starts from: the checked inputs, each track's predicted measurement, the innovations
+    ``(T, M, Dz)`` of every detection, their squared Mahalanobis distances and the gate."""
+    mean, cov, det, present = check_inputs(mean, cov, detections, present)
+    t, m = mean.shape[0], det.shape[0]
+    pred = predict_measurement(mean, cov, observation)
+    nu = innovations(pred, observation, det)
+    d2 = mahalanobis2(nu, pred.S) if m else torch.zeros(t, 0, dtype=DTYPE)
+    return mean, cov, det, present, pred, nu, d2, gate(d2, nu.shape[-1], gate_probability, present)
+
 class GNN:
     """Global nearest neighbour associator (:class:`~dslearn.association.base.Associator`).
 
@@ -55,13 +67,9 @@ class GNN:
 
     def associate(self, mean: Tensor, cov: Tensor, observation: ObservationModel, detections: Tensor,
                   present: Tensor | None = None) -> Association:
-        mean, cov, det, present = check_inputs(mean, cov, detections, present)
-        t, m = mean.shape[0], det.shape[0]
-        pred = predict_measurement(mean, cov, observation)
-        nu = innovations(pred, observation, det)  # (T, M, Dz)
-        dz = nu.shape[-1]
-        d2 = mahalanobis2(nu, pred.S) if m else torch.zeros(t, 0, dtype=DTYPE)
-        gated = gate(d2, dz, self.gate_probability, present)
+        mean, cov, det, present, pred, nu, d2, gated = gated_innovations(
+            mean, cov, observation, detections, present, self.gate_probability)
+        t, m, dz = mean.shape[0], det.shape[0], nu.shape[-1]
         if self.cost == "likelihood":
             pdpg = self.detection_probability * self.gate_probability
             pair = -log_likelihood_ratios(d2, pred.S, self.detection_probability, self.clutter_density)

@@ -27,9 +27,9 @@ from scipy.sparse.csgraph import connected_components
 from scipy.special import logsumexp
 from torch import Tensor
 
-from dslearn.association.base import DTYPE, Association, check_inputs, innovations, kalman_gain, predict_measurement
-from dslearn.association.gating import check_probability, gate, mahalanobis2
-from dslearn.association.gnn import log_likelihood_ratios
+from dslearn.association.base import Association, kalman_gain
+from dslearn.association.gating import check_probability
+from dslearn.association.gnn import gated_innovations, log_likelihood_ratios
 from dslearn.errors import ConfigError, check_positive
 from dslearn.models.base import ObservationModel
 
@@ -110,13 +110,8 @@ class JPDA:
 
     def associate(self, mean: Tensor, cov: Tensor, observation: ObservationModel, detections: Tensor,
                   present: Tensor | None = None) -> Association:
-        mean, cov, det, present = check_inputs(mean, cov, detections, present)
-        t, m = mean.shape[0], det.shape[0]
-        pred = predict_measurement(mean, cov, observation)
-        nu = innovations(pred, observation, det)  # (T, M, Dz)
-        dz = nu.shape[-1]
-        d2 = mahalanobis2(nu, pred.S) if m else torch.zeros(t, 0, dtype=DTYPE)
-        gated = gate(d2, dz, self.gate_probability, present)
+        mean, cov, det, present, pred, nu, d2, gated = gated_innovations(
+            mean, cov, observation, detections, present, self.gate_probability)
         score = log_likelihood_ratios(d2, pred.S, self.detection_probability, self.clutter_density)
         miss = math.log(1 - self.detection_probability * self.gate_probability)
         b, b0 = marginals(score.detach().numpy(), miss, gated.numpy(), self.max_joint_events)
