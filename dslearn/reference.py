@@ -347,7 +347,9 @@ def reference_tracking_metrics(means: Tensor, infos: Tensor, truth: Tensor) -> d
     ``nees`` :math:`= \frac{1}{K D_x}\sum_t e^{tT}\Omega^t_i e^t`.
 
     Args:
-        means ``(S, B, K+1, Dx)``, infos ``(S, B, K+1, Dx, Dx)``, truth ``(B, K+1, Dx)``.
+        means: ``(S, B, K+1, Dx)``.
+        infos: ``(S, B, K+1, Dx, Dx)``.
+        truth: ``(B, K+1, Dx)``.
     Returns:
         ``{name: S lists of B floats}``.
     """

@@ -87,6 +87,22 @@ def test_the_named_modules_have_api_pages():
         assert importlib.util.find_spec(mod) is not None, mod
 
 
+#: the app around the library: command-line entry points, reports, the config validation layer, progress output
+#: and developer tools; the how-to pages and the README document them by their commands and options
+APP = ("dslearn.run", "dslearn.bench", "dslearn.report", "dslearn.reports", "dslearn.schemas", "dslearn.progress",
+       "dslearn.callbacks", "dslearn.conf_paths", "dslearn.search_path", "dslearn.tools", "dslearn.train_lstm")
+
+
+def test_every_library_module_has_an_api_page():
+    """Every public module of the library (not the app, above) is rendered on a page of docs/reference/."""
+    pages = "\n".join(p.read_text(encoding="utf-8") for p in (DOCS / "reference").glob("*.md"))
+    documented = set(re.findall(r"^::: ([\w.]+)\s*$", pages, re.M))
+    modules = {".".join(p.relative_to(ROOT).with_suffix("").parts) for p in (ROOT / "dslearn").rglob("*.py")
+               if not any(part.startswith("_") for part in p.relative_to(ROOT).parts)}
+    library = {m for m in modules if not any(m == a or m.startswith(a + ".") for a in APP)}
+    assert library - documented == set(), sorted(library - documented)
+
+
 def test_no_machine_paths_in_the_docs():
     for page in [*DOCS.rglob("*.md"), ROOT / "mkdocs.yml"]:
         text = page.read_text(encoding="utf-8")

@@ -51,9 +51,10 @@ class GNN:
     """Global nearest neighbour associator (:class:`~dslearn.association.base.Associator`).
 
     Args:
-        detection_probability: :math:`P_D` in (0, 1]; clutter_density: :math:`\\lambda` (> 0, false detections
-        per unit measurement volume); gate_probability: :math:`P_G` in (0, 1] (1: no gate); cost:
-        ``"likelihood"`` or ``"mahalanobis"``.
+        detection_probability: :math:`P_D` in (0, 1].
+        clutter_density: :math:`\\lambda` (> 0, false detections per unit measurement volume).
+        gate_probability: :math:`P_G` in (0, 1] (1: no gate).
+        cost: ``"likelihood"`` or ``"mahalanobis"``.
     """
 
     def __init__(self, detection_probability: float = 0.9, clutter_density: float = 1e-3,

@@ -93,9 +93,11 @@ class JPDA:
     """Exact JPDA associator (:class:`~dslearn.association.base.Associator`).
 
     Args:
-        detection_probability: :math:`P_D` in (0, 1); clutter_density: :math:`\\lambda` (> 0);
-        gate_probability: :math:`P_G` in (0, 1]; max_joint_events: the most joint events a cluster may have
-        (> 0; more stops with an error naming this setting).
+        detection_probability: :math:`P_D` in (0, 1).
+        clutter_density: :math:`\\lambda` (> 0).
+        gate_probability: :math:`P_G` in (0, 1].
+        max_joint_events: the most joint events a cluster may have (> 0; more stops with an error naming this
+            setting).
     """
 
     def __init__(self, detection_probability: float = 0.9, clutter_density: float = 1e-3,
