@@ -36,7 +36,9 @@ def site(tmp_path_factory) -> Path:
     env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}
     res = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(ROOT / "mkdocs.yml"),
                           "-d", str(out)], cwd=out.parent, env=env, capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-4000:]
+    # a failed build says why: its WARNING/ERROR lines first (the cause; strict mode aborts at the end), then the tail
+    causes = [ln for ln in (res.stdout + res.stderr).splitlines() if re.search(r"\b(WARNING|ERROR)\b", ln)]
+    assert res.returncode == 0, "\n".join(causes[:50]) + "\n...\n" + res.stderr[-2000:]
     return out
 
 
