@@ -158,17 +158,23 @@ def compare(old: str, new: str, rtol: float | None = None, atol: float = 1e-12) 
 CROSS_CPU = {"gp_bayes_small": (1e-6, 1e-9)}
 
 
-def check(out: Path, only: str | None, rtol: float | None = None, atol: float = 1e-12) -> int:
+def check(out: Path, only: str | None, rtol: float | None = None, atol: float = 1e-12, jobs: int = 1) -> int:
+    """Run every selected study's small run (``jobs`` at a time, each a single-threaded process) and compare it
+    with its golden file; the verdicts are printed in the runs' order. Exit status 1 if any differs."""
+    from concurrent.futures import ThreadPoolExecutor
+
     manifest = json.loads((out / "manifest.json").read_text())
     bad = 0
-    with tempfile.TemporaryDirectory() as tmp:
-        for name in _select(only):
+    names = _select(only)
+    with tempfile.TemporaryDirectory() as tmp, ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+        runs = {n: pool.submit(run_one, n, Path(tmp)) for n in names if n in manifest["runs"]}
+        for name in names:
             if name not in manifest["runs"]:
                 print(f"{name}: not recorded")
                 bad += 1
                 continue
             old = gzip.decompress((out / f"{name}.csv.gz").read_bytes()).decode()
-            new, wall = run_one(name, Path(tmp))
+            new, wall = runs[name].result()
             r, a = rtol, atol
             if rtol is not None and name in CROSS_CPU:
                 r, a = max(rtol, CROSS_CPU[name][0]), max(atol, CROSS_CPU[name][1])
@@ -186,13 +192,14 @@ def main(argv=None) -> None:
     p.add_argument("--rtol", type=float, default=None,
                    help="check: pass a run whose values are all within atol + rtol*|golden| (default: bit-identity)")
     p.add_argument("--atol", type=float, default=1e-12, help="check: absolute part of the tolerance (with --rtol)")
+    p.add_argument("--jobs", type=int, default=1, help="check: runs at a time (each one single-threaded process)")
     a = p.parse_args(argv)
     if a.command == "record":
         if "--out" not in (argv if argv is not None else sys.argv[1:]):
             p.error("record needs --out DIR (it never writes over the committed golden files by default)")
         record(a.out, a.only)
     else:
-        sys.exit(check(a.out, a.only, a.rtol, a.atol))
+        sys.exit(check(a.out, a.only, a.rtol, a.atol, a.jobs))
 
 
 if __name__ == "__main__":
