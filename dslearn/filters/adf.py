@@ -192,6 +192,15 @@ def _extend(gp, g: _Gram, X64: Tensor, mask: Tensor) -> None:
 
 
 # ------------------------------------------------------------------------------------------ the moments
+def _void(gp) -> bool:
+    """Whether no node of ``gp`` holds a valid point (where the GP skips its passes for them,
+    :attr:`~dslearn.models.gp_backends.exact.OnlineGP.skip_void`)."""
+    if gp._void():
+        return True
+    idx = gp._active()
+    return idx is not None and idx.numel() == 0
+
+
 def belief_moments(gp, x: Tensor, P: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     r"""Exact moments of the GP's prediction at :math:`y \sim \mathcal N(x, P)` (module docstring).
 
@@ -215,7 +224,9 @@ def belief_moments(gp, x: Tensor, P: Tensor) -> tuple[Tensor, Tensor, Tensor, Te
     cov = AP @ A.transpose(-1, -2) + AP @ Jg.transpose(-1, -2) + Jg @ AP.transpose(-1, -2)
     os_ = gp._os.to(F64)  # sigma_f^2 per node
     n = gp.n
-    if n == 0:  # no data: f = m(y) + w, w ~ N(0, sigma_f^2 I)
+    if n == 0 or _void(gp):  # no (valid) data: f = m(y) + w, w ~ N(0, sigma_f^2 I)
+        # void: every stored point invalid, so E[g] = 0, E[k k^T] = 0 and the trace 0 at every node: the full
+        # pass's numbers, without its O(S n^2) terms per query nor the data-only terms' upkeep (gram)
         return mean, symmetrize(cov), jac, os_.unsqueeze(-1).expand(s, nq).clone()
     Eg = mean - gp.prior_mean(x).to(F64)  # E[g(y)] = q^T alpha  (S, N, Dy)
     gr = gram(gp)

@@ -14,7 +14,10 @@ nothing to learn from): they are kept as decoupled unit rows of the factor and c
 exactly nothing to predictions. While no node holds a valid point (a field of sensors whose learning gate
 has admitted nothing yet, e.g. Liu's 200 sensors), every prediction is the prior and an append only writes
 its unit row: both skip the ``O(S n^2)`` passes over the factor, with the same numbers, bit for bit
-(:attr:`OnlineGP.skip_void`).
+(:attr:`OnlineGP.skip_void`). Where some nodes hold valid points and others none (the few sensors near a
+target), a prediction runs its passes on the former only and gives the others the prior; the numbers are the
+full passes', bit for bit, but for the latent variance at several queries per node through the inverse factor,
+whose batched product over the active nodes may sum in another order (1e-12 relative, tested).
 """
 
 from __future__ import annotations
@@ -115,7 +118,9 @@ class OnlineGP(PriorMean, nn.Module):
     grows_per_append = True
     #: while no node holds a valid point, :meth:`predict` returns the prior and :meth:`append` writes the unit row
     #: of an invalid point without the passes over the factor (CPU: the check is a host read; the numbers are
-    #: those of the full passes, bit for bit, tested); False: always the full passes
+    #: those of the full passes, bit for bit, tested); while some do not, :meth:`predict` and
+    #: :meth:`predict_belief` run the passes on the nodes that do only (the module docstring); False: always
+    #: the full passes
     skip_void = True
 
     def __init__(
@@ -257,16 +262,29 @@ class OnlineGP(PriorMean, nn.Module):
         self._os = self.outputscale.to(**kw).clone()
         self._noise = self.noise_var.to(**kw).clone()
 
-    def _cross(self, x: Tensor) -> Tensor:
+    def _cross(self, x: Tensor, idx: Tensor | None = None) -> Tensor:
         r"""``k(X, x) (S, n, N)`` against the stored inputs for ``x (S, N, d)``, zero at invalid points:
         :math:`\|a-b\|^2 = \|a\|^2 + \|b\|^2 - 2 a^T b` on the cached scaled inputs and their norms
-        (one ``(S, n, N)`` result, no ``(S, n, d)`` temporary; equals :meth:`kernel`, tested)."""
+        (one ``(S, n, N)`` result, no ``(S, n, d)`` temporary; equals :meth:`kernel`, tested). ``idx``: only
+        these nodes (``x`` then holds their queries, ``(len(idx), N, d)``)."""
         n = self.n
-        xs = x / self._ls
+        sel = slice(None) if idx is None else idx
+        xs = x / self._ls[sel]
         xn = (xs * xs).sum(-1)  # (S, N)
-        d2 = torch.baddbmm(self.Xn[:, :n].unsqueeze(-1) + xn.unsqueeze(-2), self.Xs[:, :n], xs.transpose(-1, -2), alpha=-2.0)
-        k = d2.clamp_min_(0.0).mul_(-0.5).exp_().mul_(self._os.reshape(-1, 1, 1))
-        return k.mul_(self.mask[:, :n].unsqueeze(-1))
+        d2 = torch.baddbmm(self.Xn[sel, :n].unsqueeze(-1) + xn.unsqueeze(-2), self.Xs[sel, :n], xs.transpose(-1, -2),
+                           alpha=-2.0)
+        k = d2.clamp_min_(0.0).mul_(-0.5).exp_().mul_(self._os[sel].reshape(-1, 1, 1))
+        return k.mul_(self.mask[sel, :n].unsqueeze(-1))
+
+    def _active(self) -> Tensor | None:
+        """The nodes that hold a valid point, as an index tensor, where some do not (and the shortcuts are on, on
+        the CPU); ``None``: every node's computation runs (all of them hold one, or no shortcut)."""
+        if not (self.skip_void and self.device_.type == "cpu"):
+            return None
+        act = self.mask[:, : self.n].any(-1)
+        if bool(act.all()):
+            return None
+        return act.nonzero().squeeze(-1)
 
     def _cache_inputs(self, lo: int, hi: int) -> None:
         """Refresh the scaled inputs and norms of rows ``lo:hi`` (after writing ``X`` or the lengthscale)."""
@@ -286,19 +304,21 @@ class OnlineGP(PriorMean, nn.Module):
         b = self._tri(w, upper=True)
         return w[:, :n].to(self.dtype_), b[:, :n].to(self.dtype_)
 
-    def _inverse_mm(self, rhs: Tensor, transpose: bool = False) -> Tensor:
+    def _inverse_mm(self, rhs: Tensor, transpose: bool = False, idx: Tensor | None = None) -> Tensor:
         """``M rhs`` (or ``M^T rhs``) for the inverse factor ``M`` and ``rhs (S, n, k)``, in ``dtype``:
         products over blocks of 256 rows that skip the zero upper triangle (a full product does
-        twice the work and measured three times slower)."""
+        twice the work and measured three times slower). ``idx``: the factors of these nodes only (``rhs``
+        then holds theirs)."""
         n, M = self.n, self.L
         rhs = rhs.to(M.dtype)
         out = rhs.new_zeros(rhs.shape) if transpose else rhs.new_empty(rhs.shape)
         for i0 in range(0, n, 256):
             i1 = min(n, i0 + 256)
+            blk = M[:, i0:i1, :i1] if idx is None else M[idx, i0:i1, :i1]
             if transpose:
-                out[:, :i1] += M[:, i0:i1, :i1].transpose(-1, -2) @ rhs[:, i0:i1]
+                out[:, :i1] += blk.transpose(-1, -2) @ rhs[:, i0:i1]
             else:
-                out[:, i0:i1] = M[:, i0:i1, :i1] @ rhs[:, :i1]
+                out[:, i0:i1] = blk @ rhs[:, :i1]
         return out.to(self.dtype_)
 
     def _pad(self, rhs: Tensor) -> Tensor:
@@ -421,14 +441,19 @@ class OnlineGP(PriorMean, nn.Module):
         self._alpha = self.A[:, : n + 1]
         self._last = None
 
-    def _solve_lower(self, rhs: Tensor) -> Tensor:
+    def _solve_lower(self, rhs: Tensor, idx: Tensor | None = None) -> Tensor:
         """``L^{-1} rhs`` for ``rhs (S, n, k)``: a solve through the full buffer (rows past n are
-        identity), or a product with the inverse factor."""
+        identity), or a product with the inverse factor. ``idx``: the factors of these nodes only (``rhs`` holds
+        theirs; a single right-hand side is taken for every node)."""
         n = self.n
+        if idx is not None and (rhs.shape[-1] == 1 or not self.inverse):  # every node's system, zero elsewhere
+            full = rhs.new_zeros(self.num_nodes, *rhs.shape[1:])
+            full[idx] = rhs
+            return self._solve_lower(full)[idx]
         if self.inverse:
             if rhs.shape[-1] == 1:
                 return inverse_factor.pair(self.L, rhs[..., 0], n, need_b=False)[0].unsqueeze(-1)
-            return self._inverse_mm(rhs)
+            return self._inverse_mm(rhs, idx=idx)
         return self._tri(self._pad(rhs), upper=False)[:, :n].to(self.dtype_)
 
     @torch.no_grad()
@@ -567,27 +592,39 @@ class OnlineGP(PriorMean, nn.Module):
             self._streaming = self._pending = False
         if n == 0:
             return mean, (kxx.clone() if variance else None), jac
-        if self._void():  # every point invalid: k_* = 0, so the prior (the full pass's numbers, bit for bit)
+        idx = self._active()
+        if self._void() or (idx is not None and idx.numel() == 0):
+            # every point invalid: k_* = 0, so the prior (the full pass's numbers, bit for bit)
             if variance and nq == 1:  # what the full pass leaves for the append at this input (without its solves)
                 self._pending = self._streaming
                 self._last = (x, None, n, x._version, None)
             # copies, as the full pass returns new tensors (the identity mean is a view of x)
             return mean.clone(), (kxx.clone() if variance else None), (None if jac is None else jac.clone())
-        X = self.X[:, :n]
-        ks = self._cross(x)  # (S, n, N)
-        ls2 = (self._ls**2).reshape(-1, 1, 1, 1)
+        # idx: the nodes that hold a valid point where some do not (None: all). The others' k_* is zero: their
+        # mean, variance and Jacobian are the prior's, which the full pass gives them bit for bit, so the passes
+        # run on the active nodes only (the void nodes' rows of the solves below are zero, as the full pass's)
+        sel = slice(None) if idx is None else idx
+        xa = x if idx is None else x[idx]
+        X = self.X[sel, :n]
+        ks = self._cross(xa, idx)  # (S, n, N)
+        ls2 = (self._ls[sel] ** 2).reshape(-1, 1, 1, 1)
         var = None
-        alpha = self.alpha
+        alpha = self.alpha if idx is None else self.alpha[idx]
         ksT = ks.transpose(-1, -2)  # (S, N, n)
         ka = ksT @ alpha  # sum_a k_a alpha_a  (S, N, Dy)
-        mean = mean + ka
+        mean_a = mean[sel] + ka
         pair = variance and nq == 1 and self._streaming
         if variance:
+            rhs = ks
+            if idx is not None and nq == 1:  # the append after it takes every node's solve: zero at the void nodes
+                rhs = ks.new_zeros(s_, n, 1)
+                rhs[idx] = ks
             if pair:  # training: the append's backward solve too, while the factor is in cache
-                w, b = self._solve_pair(ks)
+                w, b = self._solve_pair(rhs)
             else:
-                w = self._solve_lower(ks)
-            var = (kxx - (w * w).sum(-2)).clamp_min(0.0)
+                w = self._solve_lower(rhs, None if nq == 1 else idx)
+            wa = w if idx is None or nq != 1 else w[idx]
+            var = (kxx[sel] - (wa * wa).sum(-2)).clamp_min(0.0)
         if jacobian:
             # sum_a k_a alpha_a x_a^T  (S, N, Dy, Dx): through the smaller temporary
             if nq == 1:  # (k * alpha)^T X: an (S, n, Dy) temporary
@@ -597,7 +634,18 @@ class OnlineGP(PriorMean, nn.Module):
             else:  # (S, n, Dy Dx), whatever the number of queries
                 ax = (alpha.unsqueeze(-1) * X.unsqueeze(-2)).flatten(-2)
                 kax = (ksT @ ax).unflatten(-1, (self.output_dim, dx))
-            jac = jac - (ka.unsqueeze(-1) * x.unsqueeze(-2) - kax) / ls2
+            jac_a = jac[sel] - (ka.unsqueeze(-1) * xa.unsqueeze(-2) - kax) / ls2
+        if idx is None:
+            mean, jac = mean_a, (jac_a if jacobian else None)
+        else:  # the void nodes keep the prior (copies: the full pass returns new tensors)
+            mean = mean.clone()
+            mean[idx] = mean_a
+            if variance:
+                var_a, var = var, kxx.clone()
+                var[idx] = var_a
+            if jacobian:
+                jac = jac.clone()
+                jac[idx] = jac_a
         if variance and nq == 1:
             # keep the input itself (not a copy): its storage cannot be reused while referenced,
             # so pointer + version identify it without a device-to-host comparison
@@ -681,20 +729,34 @@ class OnlineGP(PriorMean, nn.Module):
         jac = self.prior_mean_jacobian(x) if jacobian else None
         if n == 0:
             return mean, var, jac
-        ls2 = self._ls.reshape(-1, 1, 1, 1) ** 2  # (S, 1, 1, 1)
-        C = cov + ls2 * torch.eye(dx, dtype=x.dtype, device=x.device)  # l^2 I + P: (S, N, Dx, Dx)
+        idx = self._active()
+        if self._void() or (idx is not None and idx.numel() == 0):  # q = 0 at every node: the prior (copies)
+            return mean.clone(), var, (None if jac is None else jac.clone())
+        # idx: the nodes that hold a valid point where some do not (None: all); the others keep the prior, as
+        # their q = 0 gives them in the full pass
+        sel = slice(None) if idx is None else idx
+        xa, cova = (x, cov) if idx is None else (x[idx], cov[idx])
+        ls2 = self._ls[sel].reshape(-1, 1, 1, 1) ** 2  # (S, 1, 1, 1)
+        C = cova + ls2 * torch.eye(dx, dtype=x.dtype, device=x.device)  # l^2 I + P: (S, N, Dx, Dx)
         Lc = torch.linalg.cholesky(C)
-        diff = (x.unsqueeze(-2) - self.X[:, :n].unsqueeze(1)).transpose(-1, -2)  # (S, N, Dx, n)
+        diff = (xa.unsqueeze(-2) - self.X[sel, :n].unsqueeze(1)).transpose(-1, -2)  # (S, N, Dx, n)
         u = torch.linalg.solve_triangular(Lc, diff, upper=False)
         # log |I + P/l^2| = log |C| - Dx log l^2
         logdet = 2 * Lc.diagonal(dim1=-2, dim2=-1).log().sum(-1) - dx * ls2.reshape(-1, 1).log()  # (S, N)
         q = torch.exp(-0.5 * ((u * u).sum(-2) + logdet.unsqueeze(-1)))  # (S, N, n)
-        q = q * (self._os.reshape(-1, 1, 1) * self.mask[:, :n].unsqueeze(1))
-        alpha = self.alpha  # (S, n, Dy)
-        mean = mean + q @ alpha
+        q = q * (self._os[sel].reshape(-1, 1, 1) * self.mask[sel, :n].unsqueeze(1))
+        alpha = self.alpha if idx is None else self.alpha[idx]  # (S, n, Dy)
+        mean_a = mean[sel] + q @ alpha
         if jacobian:
             cd = torch.linalg.solve_triangular(Lc.transpose(-1, -2), u, upper=True)  # C^{-1} (x - x_a): (S, N, Dx, n)
-            jac = jac - (alpha.transpose(-1, -2).unsqueeze(1) * q.unsqueeze(-2)) @ cd.transpose(-1, -2)
+            jac_a = jac[sel] - (alpha.transpose(-1, -2).unsqueeze(1) * q.unsqueeze(-2)) @ cd.transpose(-1, -2)
+        if idx is None:
+            return mean_a, var, (jac_a if jacobian else None)
+        mean = mean.clone()
+        mean[idx] = mean_a
+        if jacobian:
+            jac = jac.clone()
+            jac[idx] = jac_a
         return mean, var, jac
 
     # hyperparameter fitting ----------------------------------------------------------------
