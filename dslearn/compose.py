@@ -282,14 +282,15 @@ def _fusion_factory(cfg: DictConfig, s: "_Slots"):
 
 def method_takes(cfg: DictConfig) -> tuple[str, ...]:
     """The parts the method of ``cfg.filter`` takes (its engine's parameters among ``model``,
-    ``observation``, ``fusion``, ``learner``), named by their root groups (``fusion`` is the ``consensus`` group)."""
+    ``observation``, ``fusion``, ``learner``, ``associator``), named by their root groups (``fusion`` is the ``consensus`` group)."""
     import inspect
 
     target = cfg.filter.get("_target_")
     if not target:
         raise ConfigError("filter has no _target_ (the method its engine makes)")
     params = inspect.signature(import_object(target, "filter._target_")).parameters
-    group = {"model": "model", "observation": "observation", "fusion": "consensus", "learner": "learner"}
+    group = {"model": "model", "observation": "observation", "fusion": "consensus", "learner": "learner",
+             "associator": "associator"}
     return tuple(g for p, g in group.items() if p in params)
 
 
@@ -310,6 +311,7 @@ def _method(cfg: DictConfig, s: "_Slots"):
         "fusion": lambda: build_fusion(cfg.consensus, net),
         "fusion_name": lambda: str(cfg.consensus.name),
         "learner": lambda: None if cfg.get("learner") is None else build(cfg.learner, "learner"),
+        "associator": lambda: None if cfg.get("associator") is None else build(cfg.associator, "associator"),
         "network": lambda: net,
         "scenario": lambda: scenario,
         "dtype": lambda: dtype,

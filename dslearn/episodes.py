@@ -97,6 +97,10 @@ class ScenarioSpec:
             for a recording or a simulator that offers none (``model=sfm`` needs ``social_force``).
         kind: one of :data:`KINDS`: ``targets`` (targets seen by the network's sensors) or ``self`` (every node
             navigates itself: node ``s`` measures only its own platform ``s``, Braga's aircraft).
+        labelled: every measurement comes labelled with its target (``meas (S, B, K+1, A, ...)``, slot ``j`` target
+            ``j``); ``False``: each sensor reports a set of unlabelled detections per step (padded: ``meas (S, B, K+1,
+            M, ...)``, ``visible`` the present slots), missed detections and clutter among them, and a method needs
+            an associator (``associator=``) to tell which detection is which target's.
     """
 
     name: str
@@ -111,6 +115,7 @@ class ScenarioSpec:
     pools: tuple[int, int] | None = None
     dynamics: str | None = None
     kind: str = "targets"
+    labelled: bool = True
 
 
 @dataclass

@@ -148,6 +148,13 @@ def _check_filter(option, cfg, world):
         assert get_object(cfg.filter._target_) is DGPTMethod and "predict" not in cfg.filter
         assert (cfg.filter.window, cfg.filter.gp_input) == (10, "temporal") and "hyper" not in cfg.filter
         return
+    if option.endswith(("_gnn", "_jpda")):  # a preset's parts on unlabelled detections: its base and an associator
+        base, _, assoc = option.rpartition("_")
+        assert {k: cfg[k] for k in ("filter", "model", "observation", "consensus", "learner")} == \
+            {k: _compose(f"method={base}")[k] for k in ("filter", "model", "observation", "consensus", "learner")}
+        assert cfg.associator == _compose(f"associator={assoc}").associator
+        return
+    assert cfg.associator == _compose().associator  # every other preset: the labels given (the default)
     if option in ("fg_ekf", "rbpf_em"):  # Jiang's FG + EKF-FG, Braga's RBPF + online EM: the studies' values
         from dslearn.methods.factor_graph import FactorGraphMethod
         from dslearn.methods.rbpf import RBPFMethod
@@ -355,6 +362,13 @@ def _check_scenario(option, cfg, world):
         sc = build_scenario(cfg)
         assert (sc.num_agents, sc.dt, sc.steps, tuple(sc.area), sc.process_std) == (2, 0.25, 12, (0.0, 8.0, 0.0, 8.0), 0.001)
         return
+    if option == "yu_crowd_clutter":  # Yu's crowd as unlabelled detections: four walkers, P_D 0.9, 1 false per step
+        sc = build_scenario(cfg)
+        spec = sc.spec
+        assert (spec.name, spec.measurement, spec.num_agents, spec.labelled, sc.dt, sc.steps) == \
+            ("yu_crowd_clutter", "position", 4, False, 0.25, 12)
+        assert (sc.p_detect, sc.clutter_rate, sc.start_velocity_std, sc.network) == (0.9, 1.0, 1.0, None)
+        return
     if option.startswith("liu_"):  # Liu et al.'s S1-S3 as a matrix scenario: one target, 200 sensors, its own field
         cfg = _compose("task=matrix", "method=dgpt_gpoe", f"scenario={option}")
         sc = build_scenario(cfg)
@@ -509,22 +523,39 @@ def _check_learner(option, cfg, world):
         assert set(cfg.learner) == {"_target_"}
 
 
-CHECKS = {"data": _check_data, "learner": _check_learner, "method": _check_method, "dataset": _check_dataset, "folds": _check_folds,
+ASSOCIATOR_CLASSES = {"labels": "LabelsAssociator", "gnn": "GNNAssociator", "jpda": "JPDAAssociator"}
+
+
+def _check_associator(option, cfg, world):
+    """A matrix method's associator: its class, the default ``labels`` (today's behaviour), every key listed."""
+    obj = build(cfg.associator, "associator")
+    assert type(obj).__name__ == ASSOCIATOR_CLASSES[option] and obj.name == option
+    assert _compose().associator._target_.endswith("LabelsAssociator")  # the root default
+    keys = {"labels": set(), "gnn": {"gate_probability", "detection_probability", "clutter_density", "cost"},
+            "jpda": {"gate_probability", "detection_probability", "clutter_density", "max_joint_events"}}[option]
+    assert set(cfg.associator) - {"_target_"} == keys == set(type(obj).config_reads)
+    if option != "labels":
+        assert (obj.gate_probability, obj.detection_probability, obj.clutter_density) == (0.99, None, None)
+        assert getattr(obj, "cost", "likelihood") == "likelihood"
+
+
+CHECKS = {"data": _check_data, "associator": _check_associator, "learner": _check_learner, "method": _check_method, "dataset": _check_dataset, "folds": _check_folds,
           "lstm": _check_lstm, "task": _check_task, "filter": _check_filter, "model": _check_model,
           "observation": _check_observation, "consensus": _check_consensus, "network": _check_network,
           "scenario": _check_scenario}
-EXPECTED_OPTIONS = {"data": {"paper", "small"}, "learner": set(LEARNER_CLASSES), "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
+EXPECTED_OPTIONS = {"data": {"paper", "small"}, "associator": set(ASSOCIATOR_CLASSES), "learner": set(LEARNER_CLASSES), "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
                     "task": set(TASKS), "filter": {"default", "ukf", "ukf_mm", "adf", "pf", "dgpt", "fg_ekf", "rbpf_em",
                                                        "rbpf_em_lin"},
                     "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
                     | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "rbpf_em_lin", "ekf_lin_hybrid_backprop", "adf_gp_hybrid",
                        "ukf_mm_gp_hybrid", "pf_gp_hybrid", "ekf_sfm_hybrid_backprop", "ekf_gp_hybrid_backprop",
                        "ekf_lstm_hybrid_backprop", "ekf_lin_hybrid_calibrated", "ekf_sfm_hybrid_calibrated",
-                       "ekf_gp_hybrid_calibrated", "ekf_lstm_hybrid_calibrated"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
+                       "ekf_gp_hybrid_calibrated", "ekf_lstm_hybrid_calibrated", "ekf_lin_hybrid_gnn",
+                       "ekf_lin_hybrid_jpda", "ekf_gp_hybrid_gnn"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
                     "observation": {"linear", "gp", "sensor", "squared_range", "range", "bearing", "terrain"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
                     "network": {"yu", "yu_blind"},
                     "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1",
-                                 "corridor", "jiang", "braga"}}
+                                 "corridor", "jiang", "braga", "yu_crowd_clutter"}}
 
 
 def test_every_option_has_its_expected_values():

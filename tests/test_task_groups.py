@@ -37,14 +37,15 @@ CONTEXT = {
 
 #: what each study reads of the root groups (from dslearn/studies/<task>.py)
 READS = {
-    "yu": set(ROOT_GROUPS) - {"learner"},  # its parts are the root groups but a matrix method's learner
+    "yu": set(ROOT_GROUPS) - {"learner", "associator"},  # its parts are the root groups but a matrix method's learner
+    # and associator
     # build_scenario / build_network / build_observation / cfg.filter / cfg.consensus.iterations; the
     # models and fusions of the grid are task.models / task.fusions, the episodes task.*_episodes
     "yu_faults": {"scenario", "network", "observation", "filter", "consensus.iterations"},
     "liu_dgpt": set(),
     # a cell: the scenario, the network part (Yu's scenario places no sensors of its own), the method's engine
     # (filter) and the parts the distributed filter takes, its learner among them; the episodes are task.*_episodes
-    "matrix": {"scenario", "network", "filter", "model", "observation", "consensus", "method", "learner"},
+    "matrix": {"scenario", "network", "filter", "model", "observation", "consensus", "method", "learner", "associator"},
     "jiang_fg": set(),
     "braga_tbn": set(),
     "gp_bayes_filters": set(),
@@ -69,6 +70,8 @@ LINES = {
     "data": ("data=small", "data.train_episodes=5"),
     # the learner: an option the matrix's context (model=lin) takes, and the group removed (its default is null)
     "learner": ("learner=none", "~learner"),
+    # the associator: its default option, and another option (a matrix cell on a labelled scenario composes with it)
+    "associator": ("associator=labels", "associator=gnn"),
 }
 
 

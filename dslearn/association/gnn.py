@@ -47,6 +47,28 @@ def gated_innovations(mean: Tensor, cov: Tensor, observation: ObservationModel, 
     d2 = mahalanobis2(nu, pred.S) if m else torch.zeros(t, 0, dtype=DTYPE)
     return mean, cov, det, present, pred, nu, d2, gate(d2, nu.shape[-1], gate_probability, present)
 
+def assignment(pair: np.ndarray, gated: np.ndarray, miss: float) -> np.ndarray:
+    """The optimal assignment of ``M`` detections to ``T`` tracks, ``(T,)`` int64 (the detection of each track, -1
+    for missed), from the pair costs ``pair (T, M)``, the gate ``gated (T, M)`` (a pair outside it is not allowed)
+    and the cost ``miss`` of a missed track (``inf``: a miss is worse than any pair, yet allowed where there are
+    too few detections)."""
+    t, m = gated.shape
+    assigned = np.full(t, -1, dtype=np.int64)
+    if t and m and bool(gated.any()):
+        # tracks x (detections + one dummy column per track): a dummy is its own track's missed detection
+        pair_np = np.where(gated, pair, np.inf)
+        dummy = np.full((t, t), np.inf)
+        np.fill_diagonal(dummy, miss)
+        cost = np.concatenate([pair_np, dummy], axis=1)
+        if math.isinf(miss):
+            finite = np.abs(pair_np[np.isfinite(pair_np)])
+            np.fill_diagonal(cost[:, m:], 1.0 + finite.sum() * 2)
+        rows, cols = linear_sum_assignment(cost)
+        take = cols < m
+        assigned[rows[take]] = cols[take]
+    return assigned
+
+
 class GNN:
     """Global nearest neighbour associator (:class:`~dslearn.association.base.Associator`).
 
@@ -66,30 +88,22 @@ class GNN:
         check_choice("associator.cost", cost, ("likelihood", "mahalanobis"))
         self.cost = cost
 
+    def costs(self, d2: Tensor, s: Tensor) -> tuple[Tensor, float]:
+        """The pair costs ``(*, T, M)`` from the squared distances ``d2 (*, T, M)`` and the innovation covariances
+        ``s (*, T, Dz, Dz)``, and the cost of a missed track (the module's text)."""
+        if self.cost == "likelihood":
+            pdpg = self.detection_probability * self.gate_probability
+            pair = -log_likelihood_ratios(d2, s, self.detection_probability, self.clutter_density)
+            return pair, (-math.log(1 - pdpg) if pdpg < 1 else math.inf)
+        return d2.sqrt(), math.sqrt(gate_threshold(self.gate_probability, s.shape[-1]))
+
     def associate(self, mean: Tensor, cov: Tensor, observation: ObservationModel, detections: Tensor,
                   present: Tensor | None = None) -> Association:
         mean, cov, det, present, pred, nu, d2, gated = gated_innovations(
             mean, cov, observation, detections, present, self.gate_probability)
         t, m, dz = mean.shape[0], det.shape[0], nu.shape[-1]
-        if self.cost == "likelihood":
-            pdpg = self.detection_probability * self.gate_probability
-            pair = -log_likelihood_ratios(d2, pred.S, self.detection_probability, self.clutter_density)
-            miss = -math.log(1 - pdpg) if pdpg < 1 else math.inf
-        else:
-            pair, miss = d2.sqrt(), math.sqrt(gate_threshold(self.gate_probability, dz))
-        assigned = np.full(t, -1, dtype=np.int64)
-        if t and m and bool(gated.any()):
-            # tracks x (detections + one dummy column per track): a dummy is its own track's missed detection
-            pair_np = np.where(gated.numpy(), pair.detach().numpy(), np.inf)
-            dummy = np.full((t, t), np.inf)
-            np.fill_diagonal(dummy, miss)
-            cost = np.concatenate([pair_np, dummy], axis=1)
-            if math.isinf(miss):  # P_D P_G = 1: a miss is worse than any pair, yet allowed (too few detections)
-                finite = np.abs(pair_np[np.isfinite(pair_np)])
-                np.fill_diagonal(cost[:, m:], 1.0 + finite.sum() * 2)
-            rows, cols = linear_sum_assignment(cost)
-            take = cols < m
-            assigned[rows[take]] = cols[take]
+        pair, miss = self.costs(d2, pred.S)
+        assigned = assignment(pair.detach().numpy(), gated.numpy(), miss)
         assigned_t = torch.from_numpy(assigned)
         hit = assigned_t >= 0
         weights = torch.zeros(t, m, dtype=DTYPE)

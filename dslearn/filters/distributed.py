@@ -211,6 +211,30 @@ def initial_belief(
     return mean, o
 
 
+def associated_belief(ep: Measurements, fusion: Fusion, start: tuple[Tensor, Tensor], associate,
+                      obs: ObservationModel) -> tuple[Tensor, Tensor]:
+    r"""The initial belief of every node from unlabelled detections: the targets' declared start (``start``: mean
+    ``(A, d)``, covariance ``(A, d, d)``, the scenario's :meth:`start_prior`) as every node's prior, updated by
+    its own detections at ``t = 0`` associated with it (``associate``, as at any step of :func:`track`) and fused.
+    Returns ``mean (S, B, Dx)``, ``info (S, B, Dx, Dx)``."""
+    _measurements_only(ep)
+    s, b = ep.meas.shape[:2]
+    mean0, cov0 = (x.to(ep.meas.device, ep.meas.dtype) for x in start)
+    a, d = mean0.shape
+    info_blocks = spd_inverse(cov0)
+    info = torch.zeros(a * d, a * d, dtype=mean0.dtype, device=mean0.device)
+    for j in range(a):
+        info[j * d:(j + 1) * d, j * d:(j + 1) * d] = info_blocks[j]
+    y0 = mean0.flatten().expand(s, b, -1).clone()
+    o0 = symmetrize(info).expand(s, b, -1, -1).clone()
+    q0 = (o0 @ y0.unsqueeze(-1)).squeeze(-1)
+    meas0, vis0, lin = associate(y0, o0, ep.meas[:, :, 0], ep.visible[:, :, 0], obs, None)
+    dq, do = novel_information(y0, meas0, vis0, obs, omega_pred=o0, linearized=lin)
+    q, o = fusion(q0, o0, dq, do)
+    o = symmetrize(o)
+    return torch.cholesky_solve(q.unsqueeze(-1), safe_cholesky(o)).squeeze(-1), o
+
+
 def track(
     ep: Measurements,
     network: SensorNetwork,
@@ -223,6 +247,7 @@ def track(
     learn_gate_std: float | None = None,
     gate_prob: float | None = None,
     predict_step=None,
+    associate=None,
 ) -> TrackResult:
     r"""Run the distributed EKF over a batch of episodes (Algorithm 1).
 
@@ -243,6 +268,10 @@ def track(
             :func:`~dslearn.filters.information.predict`. The unscented one also linearises a nonlinear
             sensor statistically (its ``observation_linearization``: the UKF's update); with a linear or
             learned observation model the update is the extended one.
+        associate: unlabelled detections (``ep.meas (S, B, K+1, M, .)``, ``ep.visible`` the present ones): each
+            node's detections associated with its predicted tracks, as one pseudo-measurement per track
+            (:class:`~dslearn.association.network.NodeAssociation`; its ``num_tracks`` targets), then the same
+            update and fusion. ``None``: the measurements are labelled (slot ``j`` is target ``j``).
     """
     _measurements_only(ep)
     if learn and len(ep) != 1:
@@ -259,8 +288,13 @@ def track(
         slr = None
     for t in range(1, steps + 1):
         y_pred, q_pred, o_pred, *pq = (predict_step or predict)(y, o, model, ctx, full=adapt)
-        lin = slr(obs, y_pred, o_pred, ep.meas.shape[-2]) if slr is not None else None
-        dq, do = novel_information(y_pred, ep.meas[:, :, t], ep.visible[:, :, t], obs, gate_prob=gate_prob,
+        if associate is None:
+            meas_t, vis_t = ep.meas[:, :, t], ep.visible[:, :, t]
+            lin = slr(obs, y_pred, o_pred, ep.meas.shape[-2]) if slr is not None else None
+        else:
+            lin = slr(obs, y_pred, o_pred, associate.num_tracks) if slr is not None else None
+            meas_t, vis_t, lin = associate(y_pred, o_pred, ep.meas[:, :, t], ep.visible[:, :, t], obs, lin)
+        dq, do = novel_information(y_pred, meas_t, vis_t, obs, gate_prob=gate_prob,
                                    omega_pred=o_pred, linearized=lin)
         q, o = fusion(q_pred, o_pred, dq, do)
         y_new = torch.cholesky_solve(q.unsqueeze(-1), safe_cholesky(o)).squeeze(-1)
@@ -272,7 +306,7 @@ def track(
             if model.learnable:
                 model.add_data(y[:, 0], y_new[:, 0], ok_prev)
             if obs.learnable:
-                obs.add_data(agents(y_new[:, 0]), ep.meas[:, 0, t], ep.visible[:, 0, t] & ok_new.unsqueeze(-1))
+                obs.add_data(agents(y_new[:, 0]), meas_t[:, 0], vis_t[:, 0] & ok_new.unsqueeze(-1))
         y = y_new
         means.append(y)
         infos.append(o)

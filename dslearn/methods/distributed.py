@@ -14,7 +14,7 @@ import pandas as pd
 import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
-from dslearn.filters.distributed import initial_belief
+from dslearn.filters.distributed import associated_belief, initial_belief, track
 from dslearn.fusion.strategies import Fusion, make_fusion
 from dslearn.learning.learners import NoLearning, OfflineLearning, OnlineLearning, refuse
 from dslearn.learning.backprop import (SUPPORTED_MODELS, BackpropLearning, BackpropParameters, fit, motion_misfit,
@@ -49,6 +49,11 @@ class DistributedFilter:
             needs a model with ``fit_offline``) or :class:`~dslearn.learning.learners.NoLearning`; ``None``: the
             natural learner of the parts (:func:`natural_learner`). A motion model that learns offline has no
             weights until trained: it takes ``offline`` only.
+        associator: the ``associator`` part (:mod:`dslearn.association.network`): ``None`` or ``labels`` = the
+            labels the scenario gives (a labelled scenario); ``gnn`` or ``jpda``: every node associates its own
+            detections with its predicted tracks, then the update and the consensus run per track (a scenario of
+            unlabelled detections only: a labelled one takes ``labels``). The tracks start at the scenario's
+            declared start (``start_prior``); the training episodes are tracked (and learned from) the same way.
     """
 
     #: the learners it can use
@@ -65,6 +70,12 @@ class DistributedFilter:
     learn_gate_std: float | None = 2.0
     model_name: str = "model"
     learner: Any = None
+    associator: Any = None
+
+    @property
+    def associates(self) -> bool:
+        """Whether it associates unlabelled detections (``associator=gnn|jpda``)."""
+        return self.associator is not None and not getattr(self.associator, "needs_labels", True)
 
     def __post_init__(self) -> None:
         natural = natural_learner(self.model, self.observation)
@@ -170,7 +181,8 @@ class DistributedFilter:
         omega = f" ω={self.fusion.omega_label}" if self.fusion.uses_omega and self.fusion.omega_label != "one" else ""
         own = type(self.learner) is type(natural_learner(self.model, self.observation))
         extra = "" if own else f" learner={getattr(self.learner, 'label', self.learner.name)}"
-        return f"{getattr(self.predict, 'name', 'ekf')} {self.model_name} {self.fusion.name}{omega}{extra}"
+        assoc = f" {self.associator.name}" if self.associates else ""
+        return f"{getattr(self.predict, 'name', 'ekf')} {self.model_name} {self.fusion.name}{omega}{extra}{assoc}"
 
     @staticmethod
     def spec_misfit(spec: ScenarioSpec) -> str | None:
@@ -190,9 +202,34 @@ class DistributedFilter:
                       f"{spec.measurement} reading per step (observation {type(self.observation).__name__}) does "
                       f"not fix a target's 2-D position (a curve of positions fits it): the sensors must fuse "
                       f"(consensus=centralized)")
+        if reason is None:
+            reason = self._association_misfit(spec)
         # a prediction step that needs a kind of motion model (filter=adf: the exact GP; filter=ukf_mm: a GP)
         misfit = getattr(self.predict, "model_misfit", None) if reason is None else None
         return reason if misfit is None else misfit(self.model, self.model_name)
+
+    def _association_misfit(self, spec: ScenarioSpec) -> str | None:
+        """Unlabelled detections need an associator (gnn, jpda), position detections and a learner that tracks
+        with it (online, offline, none); an associator needs a scenario of targets."""
+        if not getattr(spec, "labelled", True) and not self.associates:
+            name = getattr(self.associator, "name", "labels")
+            return (f"associator={name} needs every measurement labelled with its target; scenario {spec.name} "
+                    f"reports unlabelled detections (choose associator=gnn or associator=jpda)")
+        if not self.associates:
+            return None
+        if getattr(spec, "labelled", True):
+            return (f"associator={self.associator.name} associates unlabelled detections; scenario {spec.name} gives "
+                    f"every measurement labelled with its target (associator=labels)")
+        if spec.kind != "targets":
+            return f"associator={self.associator.name} associates detections of targets; scenario {spec.name} has " \
+                   f"nodes navigating themselves"
+        if not self.observation.measures_position:
+            return (f"associator={self.associator.name} associates position detections; observation "
+                    f"{type(self.observation).__name__} does not measure positions")
+        if self.learner.name in ("backprop", "calibrate"):
+            return (f"learner={self.learner.name} learns through the labelled update; with "
+                    f"associator={self.associator.name} use learner=online|offline|none")
+        return None
 
     def _init(self, scenario: Scenario, network: SensorNetwork, ctx, fusion: Fusion, obs: ObservationModel):
         """``init(measurements) -> (mean, info)``: :func:`~dslearn.filters.distributed.initial_belief` with the
@@ -206,6 +243,8 @@ class DistributedFilter:
     def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
                  seed: int) -> Estimates:
         ctx, model, fusion, obs = scenario.ctx(), self.model, self.fusion, self.observation
+        if self.associates:
+            return self._estimate_associating(scenario, network, train, test, seed)
 
         def online(model, obs, fusion):
             return OnlineLearner(
@@ -229,6 +268,53 @@ class DistributedFilter:
         if scenario.spec.kind == "self":  # each node's estimate of its own platform: one report of every platform
             return own_estimates(res.mean, res.info, scenario.spec.num_agents)
         return beliefs_to_estimates(res.mean, res.info, network, scenario.spec.num_agents)
+
+
+    def _estimate_associating(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
+                              seed: int) -> Estimates:
+        """:meth:`estimate` with every node associating its own detections (:class:`AssociatingLearner`)."""
+        ctx, model, fusion, obs = scenario.ctx(), self.model, self.fusion, self.observation
+        a = scenario.spec.num_agents
+        hook = self.associator.make(scenario, network, a)
+        start = getattr(scenario, "start_prior", None)
+        if not callable(start):
+            raise ConfigError(f"associator={self.associator.name}: scenario {scenario.spec.name} declares no start of "
+                              f"its targets (start_prior) to start the tracks from")
+        prior = start()
+
+        def init(ep):
+            return associated_belief(ep, fusion, prior, hook, obs)
+        learner = AssociatingLearner(network, model, obs, fusion, ctx, init=init, predict_step=self.predict,
+                                     learn_gate_std=self.learn_gate_std, associate=hook)
+        if self.learner.name == "offline":
+            fit_offline_cached(model, train.states, ctx.dt, seed)
+        if self.learner.name in ("online", "offline") and learner.learnable:
+            learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
+        res = learner.estimate(test)
+        return beliefs_to_estimates(res.mean, res.info, network, a)
+
+
+@dataclass
+class AssociatingLearner(OnlineLearner):
+    """Algorithm 1's learner (:class:`~dslearn.learning.online.OnlineLearner`) tracking unlabelled detections:
+    every node associates its own detections with its tracks (``associate``,
+    :class:`~dslearn.association.network.NodeAssociation`) before the update and the fusion."""
+
+    associate: Any = None
+
+    def learn(self, ep: Measurements) -> None:
+        track(ep, self.network, self.model, self.obs, self.fusion, self.ctx, self.init(ep), learn=True,
+              learn_gate_std=self.learn_gate_std, gate_prob=self.gate_prob, predict_step=self.predict_step,
+              associate=self.associate)
+        self.seen += 1
+        every = int(getattr(self.model, "fit_every", 0) or 0)
+        if every and self.seen % every == 0:
+            self.model.fit()
+
+    @torch.no_grad()
+    def estimate(self, ep: Measurements):
+        return track(ep, self.network, self.model, self.obs, self.fusion, self.ctx, self.init(ep), learn=False,
+                     gate_prob=self.gate_prob, predict_step=self.predict_step, associate=self.associate)
 
 
 def natural_learner(model: MotionModel, observation: ObservationModel):

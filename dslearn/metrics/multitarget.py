@@ -228,3 +228,44 @@ def identity_metrics(truth: Tensor, est: Tensor, threshold: float, *, truth_mask
     t = torch.from_numpy(out).reshape(*batch, 5)
     keys = ("id_switches", "fragmentations", "matches", "misses", "false_tracks")
     return {k: t[..., i] for i, k in enumerate(keys)}
+
+
+#: the cut-off ``c`` (m) of GOSPA and OSPA and the match distance of the identity metrics in the matrix's rows of
+#: multi-target tracking (:func:`tracking_metrics`): a track further than this from a target is not its
+MATRIX_CUTOFF = 2.0
+#: the order ``p`` of GOSPA and OSPA in the matrix's rows
+MATRIX_ORDER = 2.0
+
+
+def matched_order(est: Tensor, truth: Tensor) -> Tensor:
+    """The track matched to each target over a whole episode, ``(*N, B, A)`` int64: per reporting node and
+    episode, the optimal assignment (SciPy's) of tracks to targets minimising the summed squared distances over the
+    steps ``1..K``. ``est (*N, B, K+1, M, 2)`` (``M >= A``), ``truth (B, K+1, A, 2)``."""
+    e = est.detach().to("cpu", torch.float64)
+    x = truth.detach().to("cpu", torch.float64)
+    cost = ((x[:, 1:, :, None] - e[..., 1:, None, :, :]) ** 2).sum(-1).sum(-3)  # (*N, B, A, M)
+    flat = cost.reshape(-1, *cost.shape[-2:]).numpy()
+    out = np.zeros((flat.shape[0], cost.shape[-2]), dtype=np.int64)
+    for i, c in enumerate(flat):
+        rows, cols = linear_sum_assignment(c)
+        out[i, rows] = cols
+    return torch.from_numpy(out).reshape(*cost.shape[:-1]).to(est.device)
+
+
+def tracking_metrics(est: Tensor, truth: Tensor, c: float = MATRIX_CUTOFF, p: float = MATRIX_ORDER) -> dict[str, Tensor]:
+    """The multi-target metrics of the matrix, per reporting node and episode ``{name: (N, B)}``, over the steps
+    ``1..K``: ``gospa`` and its parts ``gospa_loc``, ``gospa_missed``, ``gospa_false`` (:func:`gospa`, their
+    means over the steps), ``ospa`` (:func:`ospa`, mean), and the identity errors of the sequence
+    (:func:`identity_metrics`, match distance ``c``): ``id_switches``, ``fragmentations``. ``est (N, B, K+1, M,
+    2)`` every node's tracks, ``truth (B, K+1, A, 2)``."""
+    e = est.detach().to("cpu", torch.float64)[:, :, 1:]
+    x = truth.detach().to("cpu", torch.float64)[:, 1:].expand(e.shape[0], *truth.shape[:1], truth.shape[1] - 1,
+                                                            *truth.shape[2:])
+    g = gospa(x, e, c, p)
+    o = ospa(x, e, c, p)
+    ids = identity_metrics(x, e, c)
+    out = {k: v.mean(-1) for k, v in g.items()}
+    out["ospa"] = o["ospa"].mean(-1)
+    out["id_switches"] = ids["id_switches"].to(torch.float64)
+    out["fragmentations"] = ids["fragmentations"].to(torch.float64)
+    return out

@@ -102,7 +102,7 @@ def check_ranges(node: Any, schema: type, prefix: str) -> None:
 
 
 #: the root config groups a task may read besides its own ``task`` node (``conf/config.yaml``'s defaults)
-ROOT_GROUPS = ("scenario", "network", "model", "observation", "consensus", "filter", "data", "learner")
+ROOT_GROUPS = ("scenario", "network", "model", "observation", "consensus", "filter", "data", "learner", "associator")
 #: root groups whose options are presets: each selects options of other root groups (``conf/method/*.yaml``:
 #: ``# @package _global_``, ``override /filter: ...``) and sets no key of its own. A task reads a preset group
 #: only where it names it in ``uses`` (a task that reads every root group does not read them)
@@ -113,6 +113,11 @@ PRESET_INSTEAD = {"method": "method presets select the parts of a matrix cell, t
 #: learner of a matrix cell's method is a part (``conf/learner``) of task=matrix only
 LEARNER_INSTEAD = {"learner": "what it learns is set by its own keys and parts; learner= selects the learner of a "
                               "matrix cell's method, task=matrix"}
+
+#: what a task that does not read the ``associator`` group associates with instead (unless it says so itself): the
+#: associator of a matrix cell's method is a part (``conf/associator``) of task=matrix only
+ASSOCIATOR_INSTEAD = {"associator": "its measurements come labelled with their targets; associator= selects the "
+                                    "associator of a matrix cell's method, task=matrix"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,7 +158,7 @@ def register_task(name: str, schema: type, check: Callable[[DictConfig], None] |
         raise TypeError(f"task {name}: uses={bad} names no root group; root groups: {list(ROOT_GROUPS + PRESET_GROUPS)}")
     ConfigStore.instance().store(group="schema/task", name=name, node=schema)
     TASKS[name] = TaskSpec(name, schema, check, uses if callable(uses) else paths,
-                           {**PRESET_INSTEAD, **LEARNER_INSTEAD, **(instead or {})}, unused, tuple(parts))
+                           {**PRESET_INSTEAD, **LEARNER_INSTEAD, **ASSOCIATOR_INSTEAD, **(instead or {})}, unused, tuple(parts))
     return schema
 
 

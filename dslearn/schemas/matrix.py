@@ -121,6 +121,9 @@ def declared_reason(cfg: DictConfig, spec) -> str | None:
 
     engine = _part_target(cfg.filter, "filter")
     reason = declared_misfit(engine, spec) if engine is not None else None
+    if reason is None and not getattr(spec, "labelled", True) and "associator" not in method_takes(cfg):
+        reason = (f"it needs every measurement labelled with its target (its engine takes no associator); scenario "
+                  f"{spec.name} reports unlabelled detections")
     for group in () if reason is not None else method_takes(cfg):
         target = _part_target(cfg.get(group), group)
         reason = declared_misfit(target, spec) if target is not None else None
@@ -405,5 +408,6 @@ register_task("matrix", MatrixSettings, check, uses=uses,
                        "observation": "this method's engine takes no observation model part",
                        "consensus": "this method's engine takes no fusion part",
                        "learner": "this method's engine takes no learner part",
+                       "associator": "this method's engine takes no associator part: it needs labelled measurements",
                        "data": "task.train_episodes / task.test_episodes"},
-              parts=("scenario", "network", "model", "observation", "consensus", "filter", "learner"))
+              parts=("scenario", "network", "model", "observation", "consensus", "filter", "learner", "associator"))

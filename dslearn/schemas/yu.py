@@ -15,9 +15,10 @@ class YuTask:
     name: str = "yu"
 
 
-#: every root group but the learner (a part of the matrix's methods): its models learn as they declare (Algorithm 1);
-#: each group's option is the part it names, whose declaration of the keys it reads applies (``parts``)
-register_task("yu", YuTask, uses=tuple(g for g in ROOT_GROUPS if g != "learner"),
+#: every root group but the learner and the associator (parts of the matrix's methods): its models learn as they
+#: declare (Algorithm 1); each group's option is the part it names, whose declaration of the keys it reads applies
+#: (``parts``)
+register_task("yu", YuTask, uses=tuple(g for g in ROOT_GROUPS if g not in ("learner", "associator")),
               instead={"learner": "its models learn as they declare: online while tracking (the GPs, Algorithm 1) "
                                   "or offline (the LSTM)"},
               parts=("scenario", "network", "model", "observation", "consensus", "filter"))

@@ -5,7 +5,11 @@ The composition root builds the scenario, the network its sensors form (the scen
 ``model``, ``observation`` and ``consensus`` parts sized for them. The cell draws the training and test
 episodes (one random stream per episode), lets the method learn and estimate, and compares the estimated
 positions with the true ones (:func:`dslearn.metrics.positions.position_metrics`): ``rmse``, ``pos_err`` and,
-where the method has covariances, ``nees_pos``, per reporting node and test episode, plus ``runtime_s``.
+where the method has covariances, ``nees_pos``, per reporting node and test episode, plus ``runtime_s``. On a
+scenario of unlabelled detections (``spec.labelled`` false) these compare the track matched to each target
+(:func:`matched_estimates`), and the multi-target metrics are written too
+(:func:`dslearn.metrics.multitarget.tracking_metrics`: ``gospa`` and its parts, ``ospa``, ``id_switches``,
+``fragmentations``).
 A method that does not fit the scenario is refused before any work (:meth:`Method.fits`).
 
 ``task.seeds`` (default 1): the cell runs that many independent draws, with the seeds ``seed``, ``seed + 1``,
@@ -34,6 +38,7 @@ import torch
 from dslearn.episodes import Scenario
 from dslearn.errors import ConfigError
 from dslearn.methods.base import Method
+from dslearn.metrics.multitarget import matched_order, tracking_metrics
 from dslearn.metrics.positions import position_metrics
 from dslearn.metrics.rows import node_rows
 from dslearn.network import SensorNetwork
@@ -139,7 +144,12 @@ class MatrixCell:
         t0 = time.perf_counter()
         est = method.estimate(scenario, network, train, test.measurements, seed)
         wall = time.perf_counter() - t0
-        metrics = position_metrics(est, scenario.positions(test.states))
+        truth = scenario.positions(test.states)
+        if getattr(spec, "labelled", True):
+            metrics = position_metrics(est, truth)
+        else:  # unlabelled detections: the track matched to each target, and the multi-target metrics
+            metrics = position_metrics(matched_estimates(est, truth), truth)
+            metrics.update(tracking_metrics(est.mean, truth))
         kinds = ["sensor" if bool(s) else "comm" for s in est.sensing]
         keys = dict(seed=int(seed), method=method.label, scenario=spec.name, units=spec.units,
                     train_episodes=st.train_episodes, test_episodes=st.test_episodes)
@@ -147,6 +157,20 @@ class MatrixCell:
         timing = pd.DataFrame({**{k: [v] for k, v in keys.items()}, "node": ["all"], "node_kind": ["all"],
                                "episode": [-1], "metric": ["runtime_s"], "value": [wall]})
         return pd.concat([df, timing], ignore_index=True), wall
+
+
+def matched_estimates(est, truth):
+    """The estimates with every node's tracks reordered so that slot ``a`` holds the track matched to target ``a``
+    over the episode (:func:`~dslearn.metrics.multitarget.matched_order`): what ``rmse``, ``pos_err`` and
+    ``nees_pos`` compare on a scenario of unlabelled detections."""
+    from dslearn.episodes import Estimates
+
+    idx = matched_order(est.mean, truth)  # (N, B, A)
+    steps = est.mean.shape[2]
+    gi = idx[:, :, None, :, None].expand(-1, -1, steps, -1, 2)
+    mean = est.mean.gather(-2, gi)
+    cov = None if est.cov is None else est.cov.gather(-3, gi.unsqueeze(-1).expand(*gi.shape, 2))
+    return Estimates(mean, cov, est.nodes, est.sensing)
 
 
 #: measured seconds per episode (training + test) of one draw's learning and estimation (the cell's ``runtime_s``

@@ -1,0 +1,127 @@
+r"""Unlabelled detections: Yu's crowd of walkers seen by range-limited sensors that report, per step, a set of
+detections without target labels, some targets missed and clutter among them.
+
+Each sensor detects each target inside its sensing range with probability :math:`P_D` (``p_detect``), the
+detection its noisy position (as in :func:`~dslearn.sim.scenario.measure`), and adds a Poisson number of false
+detections (rate ``clutter_rate`` per sensor and step) uniform over its sensing disc. The detections of a sensor
+and step are one padded set in a random order (``meas (S, B, K+1, M, 2)``, ``visible`` the present slots,
+``M = A + n_max`` with ``n_max`` the Poisson quantile of :data:`CLUTTER_TAIL`): nothing in a slot tells whose
+detection it is. The spec says so (``labelled=False``): a method needs an associator (``associator=``).
+"""
+
+from __future__ import annotations
+
+import math
+import torch
+from scipy.stats import poisson
+from torch import Tensor
+
+from dslearn.episodes import Episodes, ScenarioSpec
+from dslearn.errors import ConfigError, _number, check_positive
+from dslearn.network import SensorNetwork
+from dslearn.sim.scenario import SocialForceScenario
+from dslearn.streams import Streams, rand
+
+#: the clutter count of a sensor and step is drawn from the Poisson law truncated where its upper tail is below this
+#: (the padded set's clutter slots; the truncation changes the mean count by less than ``1e-12``)
+CLUTTER_TAIL = 1e-12
+
+
+def check_detection(p_detect, clutter_rate) -> tuple[float, float]:
+    """``p_detect`` in (0, 1] and ``clutter_rate`` >= 0 (finite), else :class:`ConfigError` naming the field."""
+    p = _number("scenario.p_detect", p_detect)
+    if not 0 < p <= 1:
+        raise ConfigError(f"scenario.p_detect={p_detect!r} must be in (0, 1] (the probability that a sensor detects "
+                          f"a target inside its range)")
+    check_positive("scenario.clutter_rate", clutter_rate, strict=False)
+    return p, float(clutter_rate)
+
+
+def clutter_cap(rate: float, tail: float = CLUTTER_TAIL) -> int:
+    """The largest clutter count drawn: the smallest ``n`` with :math:`P(N > n) <` ``tail`` (0 for rate 0)."""
+    return 0 if rate == 0 else int(poisson.isf(tail, rate)) + 1
+
+
+def poisson_counts(u: Tensor, rate: float, cap: int) -> Tensor:
+    """Poisson(``rate``) counts from uniforms ``u`` by the inverse CDF, at most ``cap`` (int64, ``u``'s shape)."""
+    if cap == 0:
+        return torch.zeros(u.shape, dtype=torch.int64, device=u.device)
+    k = torch.arange(cap + 1, dtype=torch.float64)
+    cdf = torch.from_numpy(poisson.cdf(k.numpy(), rate)).to(u.device, torch.float64)
+    return torch.searchsorted(cdf, u.to(torch.float64).contiguous(), right=True).clamp(max=cap)
+
+
+def detections(pos_meas: Tensor, visible: Tensor, network: SensorNetwork, p_detect: float, clutter_rate: float,
+               generator) -> tuple[Tensor, Tensor]:
+    """Unlabelled detection sets from labelled noisy readings ``pos_meas (S, B, K+1, A, 2)`` of the targets a node
+    sees (``visible (S, B, K+1, A)``): each kept with probability ``p_detect``, clutter added over each sensing
+    node's disc, every set shuffled. Returns ``meas (S, B, K+1, M, 2)`` (zeros in absent slots) and ``present
+    (S, B, K+1, M)``. Draws, per episode (``generator``: a Generator or per-episode Streams over ``(B,)``): the
+    detection draws, the clutter counts, the clutter positions, the shuffle keys."""
+    s, b, k1, a = visible.shape
+    cap = clutter_cap(clutter_rate)
+    m = a + cap
+    dtype, dev = pos_meas.dtype, pos_meas.device
+
+    def draw(*shape):  # (B, *shape) from the episode's stream -> (S, B, ...) where shape starts with S
+        return rand((b, *shape), generator, dtype=torch.float64).to(dev).transpose(0, 1)
+
+    hit = visible & (draw(s, k1, a) < p_detect)
+    count = poisson_counts(draw(s, k1), clutter_rate, cap)  # (S, B, K+1)
+    count[network.num_sensors:] = 0  # communication-only nodes sense nothing
+    u = draw(s, k1, max(cap, 1), 2)[..., :cap, :]
+    r = network.sensing_range * u[..., 0].sqrt()
+    th = 2 * math.pi * u[..., 1]
+    centre = network.positions.to(dev, torch.float64).view(s, 1, 1, 1, 2)
+    clutter = centre + torch.stack([r * th.cos(), r * th.sin()], -1)  # (S, B, K+1, cap, 2)
+    clutter_on = torch.arange(cap, device=dev) < count.unsqueeze(-1)
+    vals = torch.cat([pos_meas.to(torch.float64) * hit.unsqueeze(-1), clutter * clutter_on.unsqueeze(-1)], -2)
+    present = torch.cat([hit, clutter_on], -1)
+    order = draw(s, k1, m).argsort(-1)  # a random order of the slots: no slot index tells a target
+    vals = vals.gather(-2, order.unsqueeze(-1).expand(*order.shape, 2))
+    present = present.gather(-1, order)
+    return vals.to(dtype), present
+
+
+class ClutterScenario(SocialForceScenario):
+    r"""Yu's crowd (:class:`~dslearn.sim.scenario.SocialForceScenario`) seen as unlabelled detections
+    (:func:`detections`): ``p_detect`` :math:`P_D \in (0, 1]`, ``clutter_rate`` (>= 0, false detections per sensor
+    and step, uniform over its sensing disc). The sensors are the run's ``network`` part (as in Yu's scenario).
+
+    Where the targets start is a declared fact of the world (:meth:`start_prior`): each in its start square (the
+    uniform law's mean and variance), moving at its desired velocity (standard deviation ``start_velocity_std``);
+    a method that associates starts its tracks there (no label is read).
+    """
+
+    def __init__(self, *args, p_detect: float = 0.9, clutter_rate: float = 1.0, start_velocity_std: float = 1.0,
+                 name: str = "yu_crowd_clutter", **kwargs):
+        super().__init__(*args, **kwargs)
+        self.p_detect, self.clutter_rate = check_detection(p_detect, clutter_rate)
+        check_positive("scenario.start_velocity_std", start_velocity_std)
+        self.start_velocity_std = float(start_velocity_std)
+        self.name = str(name)
+
+    @property
+    def spec(self) -> ScenarioSpec:
+        """As Yu's scenario's, named ``name``, with unlabelled detections (``labelled=False``)."""
+        return ScenarioSpec(self.name, "position", self.num_agents, "pv2d", self.dt, self.steps,
+                            dynamics="social_force", labelled=False)
+
+    def start_prior(self) -> tuple[Tensor, Tensor]:
+        """Where the targets start, as declared: ``mean (A, 4)`` (start squares' centres, desired velocities) and
+        ``cov (A, 4, 4)`` (a uniform square's variance ``size^2 / 12`` per axis, ``start_velocity_std^2``)."""
+        pos = self.corners + self.start_size / 2
+        mean = torch.cat([pos, self.sfm.desired.detach().to(torch.float64).clone()], -1)
+        var = torch.tensor([max(self.start_size**2 / 12, 1e-6)] * 2 + [self.start_velocity_std**2] * 2,
+                           dtype=torch.float64)
+        return mean, torch.diag_embed(var.expand(self.num_agents, 4)).clone()
+
+    def clutter_density(self, network: SensorNetwork) -> float:
+        """The clutter's spatial density per unit area of a sensing disc: ``clutter_rate / (pi r^2)``."""
+        return self.clutter_rate / (math.pi * network.sensing_range**2)
+
+    def sample(self, num: int, network: SensorNetwork, generator: torch.Generator | Streams) -> Episodes:
+        ep = super().sample(num, network, generator)
+        meas, present = detections(ep.meas, ep.visible, network, self.p_detect, self.clutter_rate, generator)
+        return Episodes(ep.states, meas, present)
+
