@@ -49,6 +49,7 @@ learned from, its small variance there would ask for too small an ``s_q``. The L
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -153,6 +154,52 @@ class ScaledSensor(ObservationModel):
         return h, c, r * _per_batch(self.scale, r)
 
 
+class NodeSubset(MotionModel):
+    """A per-node model (the GPs) answering for its nodes ``nodes`` only, as a model of ``len(nodes)`` nodes: the
+    queries ``(len(nodes), *B, Dx)`` are laid into a batch of all its nodes (zeros at the others, unit covariances in
+    ``ctx.cov``), the base model is asked, and the rows of ``nodes`` kept. A per-node model's answer at a node
+    depends on that node's queries and state only, so these rows are what the base gives them; the filter that
+    uses it runs on ``nodes`` only (:func:`calibrate`: the nodes with a counted innovation)."""
+
+    def __init__(self, base: MotionModel, nodes: Tensor):
+        super().__init__()
+        self.base = base
+        self.nodes = nodes
+        self.state_dim = base.state_dim
+
+    @property
+    def num_nodes(self) -> int:
+        return int(self.nodes.numel())
+
+    def _flat(self, x: Tensor) -> Tensor:
+        return x.reshape(self.num_nodes, -1, self.state_dim)
+
+    def _full(self, x: Tensor, ctx: StepContext) -> tuple[Tensor, StepContext]:
+        idx = self.nodes.to(x.device)
+        full = x.new_zeros(self.base.num_nodes, *x.shape[1:])
+        full[idx] = x
+        cov = ctx.cov
+        if cov is not None:
+            eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+            pad = eye.expand(self.base.num_nodes, *cov.shape[1:]).clone()
+            pad[idx] = cov
+            cov = pad
+        return full, dataclasses.replace(ctx, cov=cov)
+
+    def forward(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.base(*self._full(x, ctx))[self.nodes.to(x.device)]
+
+    def jacobian(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.base.jacobian(*self._full(x, ctx))[self.nodes.to(x.device)]
+
+    def noise_cov(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.base.noise_cov(*self._full(x, ctx))[self.nodes.to(x.device)]
+
+    def linearize(self, x: Tensor, ctx: StepContext) -> tuple[Tensor, Tensor, Tensor]:
+        idx = self.nodes.to(x.device)
+        return tuple(t[idx] for t in self.base.linearize(*self._full(x, ctx)))
+
+
 def per_node(model: MotionModel) -> bool:
     """Whether ``model`` keeps per-node state (the node dimension must stay first and whole): the GPs."""
     return bool(getattr(model, "learnable", False)) or hasattr(type(model), "num_nodes")
@@ -196,20 +243,58 @@ def innovation_nll(y_pred: Tensor, P_pred: Tensor, meas: Tensor, mask: Tensor, o
     return torch.where(mask, nll, torch.zeros_like(nll)).sum(-1).sum(0)
 
 
+def _batch_subset(part, rows: Tensor):
+    """``part`` (a motion or observation model) for the batch elements ``rows`` of the one it was made for: a
+    scaled part with one scale per batch element keeps those of ``rows``; any other part is returned as it is."""
+    if isinstance(part, (ScaledNoise, ScaledSensor)) and part.scale.dim() > 0:
+        return type(part)(part.base, part.scale[rows.to(part.scale.device)])
+    return part
+
+
+#: :func:`individual_nll` drops the batch elements that count no innovation any more once they are this share
+#: of those it runs (each drop copies the beliefs and measurements of the rest)
+DROP_SHARE = 0.2
+
+
 def individual_nll(model: MotionModel, obs: ObservationModel, ep: Measurements, init: tuple[Tensor, Tensor],
                    ctx: StepContext, mask: Tensor, predict_step=None) -> Tensor:
     """Each node's filter alone (the individual information filter: prediction, its own novel information) on
     ``ep``'s episodes from ``init = (mean (S, N, Dx), info (S, N, Dx, Dx))``; the innovation NLL summed over the
-    steps, nodes and targets of ``mask (S, N, K+1, A)``: ``(N,)``."""
+    steps, nodes and targets of ``mask (S, N, K+1, A)``: ``(N,)``.
+
+    A batch element is run up to its last counted innovation only: past it, nothing it computes enters its sum,
+    so the elements that have none left are dropped from the batch (every element's filter is independent of the
+    others; ``model`` and ``obs`` may hold one noise scale per element, :class:`ScaledNoise`, :class:`ScaledSensor`,
+    which are dropped with it)."""
     step_of = predict_step or ekf_predict
     alone = make_fusion("individual", torch.eye(1), 1)
     y, o = init
-    total = torch.zeros(y.shape[1], dtype=y.dtype, device=y.device)
+    n = y.shape[1]
+    total = torch.zeros(n, dtype=y.dtype, device=y.device)
+    steps = torch.arange(mask.shape[2], device=mask.device)
+    last = torch.where(mask.any(-1).any(0), steps, torch.full_like(steps, -1)).amax(-1)  # (N,) last counted step
+    rows = None  # the original batch elements still run (None: all of them)
+    meas, visible, m, mod, sensor = ep.meas, ep.visible, mask, model, obs
     for t in range(1, ep.steps + 1):
-        y_pred, q_pred, o_pred, P_pred, *_ = step_of(y, o, model, ctx, full=True)
-        if bool(mask[:, :, t].any()):
-            total = total + innovation_nll(y_pred, P_pred, ep.meas[:, :, t], mask[:, :, t], obs)
-        dq, do = novel_information(y_pred, ep.meas[:, :, t], ep.visible[:, :, t], obs)
+        live = (last if rows is None else last[rows]) >= t
+        size = live.shape[0]
+        alive = int(live.sum())
+        if alive == 0:
+            break
+        if size - alive >= DROP_SHARE * size:  # drop the elements done with (their sums are final)
+            keep = live.nonzero().squeeze(-1)
+            rows = keep if rows is None else rows[keep]
+            y, o = y[:, keep], o[:, keep]
+            meas, visible, m = meas[:, keep], visible[:, keep], m[:, keep]
+            mod, sensor = _batch_subset(model, rows), _batch_subset(obs, rows)
+        y_pred, q_pred, o_pred, P_pred, *_ = step_of(y, o, mod, ctx, full=True)
+        if bool(m[:, :, t].any()):
+            nll = innovation_nll(y_pred, P_pred, meas[:, :, t], m[:, :, t], sensor)
+            if rows is None:
+                total = total + nll
+            else:
+                total[rows] = total[rows] + nll
+        dq, do = novel_information(y_pred, meas[:, :, t], visible[:, :, t], sensor)
         q, o = alone(q_pred, o_pred, dq, do)
         y = torch.cholesky_solve(q.unsqueeze(-1), safe_cholesky(o)).squeeze(-1)
     return total
@@ -244,14 +329,20 @@ class Calibration:
 
 def _pack(ep: Measurements, init: tuple[Tensor, Tensor], mask: Tensor, keep_nodes: bool):
     """Only the (node, episode) pairs with a counted innovation: as a batch ``(1, P, ...)`` of independent
-    filters, or (``keep_nodes``: a per-node model) the episodes with one, every node kept."""
+    filters, or (``keep_nodes``: a per-node model) the episodes with one at some node, for the nodes with one in
+    some episode (their indices are returned last: ``None`` where that is every node)."""
     active = mask.flatten(2).any(-1)  # (S, B)
     if keep_nodes:
         b = active.any(0).nonzero().squeeze(-1)
-        return ep.select(b), (init[0][:, b], init[1][:, b]), mask[:, b]
+        nodes = active.any(1).nonzero().squeeze(-1)
+        ep, init, mask = ep.select(b), (init[0][:, b], init[1][:, b]), mask[:, b]
+        if nodes.numel() == active.shape[0]:
+            return ep, init, mask, None
+        sub = Measurements(ep.meas[nodes], ep.visible[nodes])
+        return sub, (init[0][nodes], init[1][nodes]), mask[nodes], nodes
     s, b = active.nonzero(as_tuple=True)
     packed = Measurements(ep.meas[s, b].unsqueeze(0), ep.visible[s, b].unsqueeze(0))
-    return packed, (init[0][s, b].unsqueeze(0), init[1][s, b].unsqueeze(0)), mask[s, b].unsqueeze(0)
+    return packed, (init[0][s, b].unsqueeze(0), init[1][s, b].unsqueeze(0)), mask[s, b].unsqueeze(0), None
 
 
 def _repeat(x: Tensor, g: int) -> Tensor:
@@ -279,7 +370,9 @@ def calibrate(model: MotionModel, obs: ObservationModel, ep: Measurements, init:
         out.seconds = time.perf_counter() - t0
         return out
     keep = per_node(model)
-    packed, start, mask = _pack(ep, init, mask, keep)
+    packed, start, mask, nodes = _pack(ep, init, mask, keep)
+    if nodes is not None:  # a per-node model, asked for the nodes with a counted innovation only
+        model = NodeSubset(model, nodes)
     n = packed.meas.shape[1]
     out.filters = int(mask.shape[0] * n) if keep else n
     k = len(fit)
