@@ -107,10 +107,13 @@ def presets() -> dict[str, str]:
     out["rbpf_em_lin.yaml"] = (
         "# @package _global_\n"
         "# Braga et al.'s RBPF over jump-Markov sensor noise modes (a Kalman filter of the constant-velocity state per\n"
-        "# particle), online EM of the modes, 10 rounds of consensus on the EM statistics; position sensors.\n"
+        "# particle), online EM of the modes, 10 rounds of consensus on the EM statistics; the scenario's own sensor\n"
+        "# model: position sensors (every node's Kalman filters) or a nonlinear sensor such as Jiang's squared ranges\n"
+        "# (a fusion centre's extended Kalman filter per particle).\n"
         "# Written by benchmarks/method_presets.py (dslearn-run task=matrix method=rbpf_em_lin).\n"
         "defaults:\n"
         "  - override /filter: rbpf_em_lin\n"
+        "  - override /observation: sensor\n"
         "  - override /consensus: statistics\n"
         "  - override /learner: online_em_sensor\n"
     )

@@ -173,13 +173,13 @@ def _check_filter(option, cfg, world):
             assert f.backward_kernel == task.backward_kernel
             assert "em" not in f and "modes" not in f  # the online EM's: learner=online_em
         return
-    if option == "rbpf_em_lin":  # the RBPF over noise modes (position sensors): its own values, the EM the learner's
+    if option == "rbpf_em_lin":  # the RBPF over noise modes (any tracking sensor): its own values, the EM the learner's
         from dslearn.methods.rbpf_modes import RBPFModesMethod
 
         f = cfg.filter
         assert get_object(f._target_) is RBPFModesMethod and "predict" not in f
-        assert (f.num_particles, f.process_noise, f.ess_threshold, f.prior_pos_std, f.prior_vel_std) == (
-            64, 1.0, 0.5, 1000.0, 1000.0)
+        assert (f.num_particles, f.process_noise, f.ess_threshold, f.prior_pos_std, f.prior_vel_std,
+                f.ekf_iterations) == (64, 1.0, 0.5, 1000.0, 1000.0, 5)
         assert "em" not in f and "modes" not in f  # the online EM's: learner=online_em_sensor
         return
     f = cfg.filter  # ukf, ukf_mm and adf inherit the priors and the learning gate of the default
@@ -462,8 +462,9 @@ def _check_method(option, cfg, world):
         learner = {"fg_ekf": "fg_identification", "rbpf_em": "online_em"}[option]
         assert cfg.learner == _compose(f"learner={learner}").learner  # its own learner, set explicitly
         return
-    if option == "rbpf_em_lin":  # the RBPF over noise modes: its filter option, the statistics part, its learner
-        assert cfg.filter == _compose("filter=rbpf_em_lin").filter
+    if option == "rbpf_em_lin":  # the RBPF over noise modes: its filter option, the scenario's own sensor model,
+        assert cfg.filter == _compose("filter=rbpf_em_lin").filter  # the statistics part, its learner
+        assert cfg.observation == _compose("observation=sensor").observation
         assert cfg.consensus == _compose("consensus=statistics").consensus
         assert cfg.learner == _compose("learner=online_em_sensor").learner
         return

@@ -127,6 +127,8 @@ def test_a_cell_that_does_not_fit_is_refused_before_any_work():
 
     spec = ScenarioSpec("jiang_like", "squared_range", 1, "param2d", 1.0, 10, networked=False)
     assert "needs measurement position; scenario jiang_like has squared_range" in DGPTMethod.fits(None, spec)
+    # why, intrinsically: a sensor's own GP expert regresses positions that one scalar reading does not fix
+    assert "a sensor alone has no position to regress" in DGPTMethod.fits(None, spec)
     # the distributed filter takes squared ranges (its observation part declares which readings it explains)
     assert DistributedFilter.spec_misfit(spec) is None
     assert "observation=linear explains readings of the targets' positions; scenario jiang_like measures " \
@@ -175,8 +177,12 @@ def _expected_fit(preset_cfg, scenario) -> bool:
         return spec.measurement == "squared_range"
     if engine.endswith("RBPFMethod"):  # Braga's RBPF + online EM: terrain altimeters on a network
         return spec.measurement == "terrain_altitude" and spec.networked
-    if engine.endswith("RBPFModesMethod"):  # a Kalman filter of [p, v] per particle: linear position sensors
-        return spec.measurement == "position" and spec.state == "pv2d"
+    if engine.endswith("RBPFModesMethod"):  # a Kalman filter of [p, v] per particle: position sensors; with the
+        # scenario's own sensor model (observation=sensor) an iterated EKF per particle at a fusion centre: Jiang's
+        # squared ranges (Braga's platforms navigate themselves: rbpf_em's)
+        sensor = str(preset_cfg.observation._target_).endswith("scenario_sensor")
+        return (spec.measurement == "position" and spec.state == "pv2d") or (
+            sensor and spec.measurement == "squared_range" and spec.state == "param2d")
     # the distributed filter: its observation model must explain the scenario's readings (observation=sensor is the
     # scenario's own kind, linear explains positions); consensus needs a graph between nodes that see the same
     # targets (Jiang's sensors report to a centre, Braga's aircraft each navigate themselves); one squared range per

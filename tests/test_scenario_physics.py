@@ -12,7 +12,10 @@ stops the run there):
 * Liu's DGPT: its tracker gets the scenario's sensors (one expert each) and step;
 * Jiang's FG-EKF: its tracker gets the scenario's sensors and their noise ``sigma_y``;
 * Braga's RBPF: its filters step with the scenario's ``T``, over the scenario's map, and the statistics consensus
-  weights are nonzero exactly on the formation's graph.
+  weights are nonzero exactly on the formation's graph;
+* the RBPF over noise modes (``rbpf_em_lin``): its filters step with the scenario's ``dt``, the EM's initial modes are
+  the learner's multiples of the std of one reading (``meas_std``; Jiang's ``sigma_y / sqrt(L)``, its observation
+  model the scenario's sensors and samples), the statistics consensus over the sensors' graph.
 """
 
 from __future__ import annotations
@@ -45,6 +48,8 @@ POSITION = ["yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "corridor"] + (["eth_
 #: one preset per method family, on every scenario it fits
 CELLS = ([(m, s) for m in ("ekf_lin_hybrid", "ekf_gp_hybrid", "ekf_lstm_hybrid", "dgpt_rbcm") for s in POSITION]
          + [("ukf_sfm_hybrid", "yu_two_agents"), ("fg_ekf", "jiang"), ("rbpf_em", "braga")])
+#: the RBPF over noise modes: every node's Kalman filters on position sensors, a fusion centre's on Jiang's
+CELLS += [("rbpf_em_lin", "yu_two_agents"), ("rbpf_em_lin", "liu_s1"), ("rbpf_em_lin", "jiang")]
 #: overridden physics: (method, scenario, override, noise, dt) the cell must use instead of the scenario's file
 OVERRIDDEN = [
     ("ekf_lin_hybrid", "liu_s1", "scenario.meas_std=0.7", 0.7, 1.0),
@@ -57,6 +62,8 @@ OVERRIDDEN = [
     ("ukf_sfm_hybrid", "yu_two_agents", "scenario.dt=0.5", 0.2, 0.5),
     ("fg_ekf", "jiang", "scenario.sigma_y=3.0", 3.0, 1.0),
     ("rbpf_em", "braga", "scenario.dt=0.1", 4.0, 0.1),
+    ("rbpf_em_lin", "jiang", "scenario.sigma_y=3.0", 3.0, 1.0),
+    ("rbpf_em_lin", "liu_s1", "scenario.meas_std=0.7", 0.7, 1.0),
 ]
 
 
@@ -109,6 +116,7 @@ def _check_method(monkeypatch, scenario, net, method, noise: float, dt: float):
     from dslearn.methods.distributed import DistributedFilter
     from dslearn.methods.factor_graph import FactorGraphMethod
     from dslearn.methods.rbpf import RBPFMethod
+    from dslearn.methods.rbpf_modes import RBPFModesMethod
 
     if isinstance(method, DistributedFilter):
         r = method.observation.noise_cov(torch.zeros(1, 4, dtype=torch.float64))[0]
@@ -159,6 +167,42 @@ def _check_method(monkeypatch, scenario, net, method, noise: float, dt: float):
         assert seen["dyn"].F[0, 2].item() == pytest.approx(dt, rel=1e-12)  # x += T vx (Eq. 23)
         assert seen["weights"] is method.fusion.weights
         assert torch.equal(seen["terrain"].z, scenario.terrain.z.to(seen["terrain"].z))
+    elif isinstance(method, RBPFModesMethod):
+        from dslearn.methods import rbpf_modes as modes_mod
+
+        assert method.fusion.weights.shape == (net.num_nodes, net.num_nodes)
+        assert torch.equal(_graph(method.fusion.weights), net.adjacency)
+        sigma_init = method.learner.init.sigma.to(torch.float64)
+        if method.centre:  # Jiang's squared ranges: one reading is the mean of the scenario's L samples
+            obs = method.observation
+            assert obs.noise_std == pytest.approx(noise, rel=1e-12) and obs.samples == scenario.num_samples
+            assert obs.sensors.shape == scenario.sensors.shape
+            reading = noise / scenario.num_samples ** 0.5
+            b, a = 1, scenario.spec.num_agents
+            monkeypatch.setattr(method, "centre_prior", lambda *args: (
+                torch.zeros(b, a, 4, dtype=torch.float64), torch.eye(4, dtype=torch.float64).expand(b, a, 4, 4)))
+
+            def spy(state, y, visible, model, observe, theta, gen, **kw):
+                raise Caught(theta=theta, model=model)
+
+            monkeypatch.setattr(modes_mod, "mkf_step_sensors", spy)
+            meas = _zeros(scenario, net, scenario.num_samples)
+        else:
+            reading = noise
+
+            def spy(state, y, visible, model, theta, gen, **kw):
+                raise Caught(theta=theta, model=model)
+
+            monkeypatch.setattr(modes_mod, "mkf_step", spy)
+            meas = _zeros(scenario, net)
+        with pytest.raises(Caught) as got:
+            method.estimate(scenario, net, None, meas, 0)
+        seen = got.value.seen
+        assert seen["model"].F[0, 2].item() == pytest.approx(dt, rel=1e-12)  # x += dt vx
+        sig = seen["theta"].sigma  # the noise the method uses: (B, 1, S, K) at the centre, (B, S, 1, K) per node
+        sig = sig.reshape(-1, sig.shape[-1])
+        assert sig.shape[0] == net.num_nodes  # every sensor's (node's) own modes
+        torch.testing.assert_close(sig, (reading * sigma_init).expand(sig.shape), rtol=1e-12, atol=0)
     else:  # a new family: extend this test
         raise AssertionError(f"no physics contract for {type(method).__name__}")
 
@@ -169,7 +213,7 @@ def test_the_cells_are_those_that_fit():
 
     for m, s in CELLS:
         assert cell(_cell(m, s)[0]).reason is None, (m, s)
-    with pytest.raises(ConfigError, match="does not fit scenario"):
+    with pytest.raises(ConfigError, match="does not fit scenario jiang: .*a sensor alone has no position to regress"):
         api.compose("task=matrix", "method=dgpt_rbcm", "scenario=jiang")
 
 

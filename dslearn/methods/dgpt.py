@@ -86,7 +86,22 @@ class DGPTMethod:
 
     @staticmethod
     def spec_misfit(spec: ScenarioSpec) -> str | None:
-        """What the engine needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`)."""
+        """What the engine needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`): sensors that
+        measure each target's position. Intrinsically so: DGPT has no state and no observation model to linearise;
+        each sensor's expert is a GP regression of the position's coordinates on time from that sensor's own
+        readings alone, with a Gaussian likelihood (its posterior, its marginal likelihood for the hyperparameters
+        and the aggregation rules' products of Gaussian predictions all rest on it). A nonlinear reading of one
+        scalar per sensor and step (a squared range, a range, a bearing, a terrain altitude) fixes no position (a
+        circle, a ray, a contour), so a sensor's own expert has no position data to regress and its posterior over
+        the position is not Gaussian (a ring about the sensor), and the sensors cannot be fused before the experts
+        without giving up DGPT's local experts."""
+        if spec.measurement != "position":
+            return (f"Liu's DGPT needs measurement position; scenario {spec.name} has {spec.measurement}: each sensor's "
+                    f"GP expert regresses the target's position on time from that sensor's own readings (Gaussian, per "
+                    f"coordinate) and the fusion centre combines the experts' Gaussian predictions, but one "
+                    f"{spec.measurement} reading per sensor fixes no position (a whole curve of positions fits it), so "
+                    f"a sensor alone has no position to regress and no Gaussian posterior of it to fuse (filters that "
+                    f"linearise the sensor do: ekf_lin_centralized, fg_ekf, rbpf_em_lin)")
         return require(spec, "Liu's DGPT (sensors that measure each target's position)", measurement="position")
 
     def fits(self, spec: ScenarioSpec) -> str | None:
