@@ -173,6 +173,14 @@ def _check_filter(option, cfg, world):
             assert f.backward_kernel == task.backward_kernel
             assert "em" not in f and "modes" not in f  # the online EM's: learner=online_em
         return
+    if option == "fg_ekf_lin":  # the FG identification of a motion model + a Kalman filter on position sensors
+        from dslearn.methods.factor_graph import FactorGraphMotionMethod
+
+        f = cfg.filter
+        assert get_object(f._target_) is FactorGraphMotionMethod and "predict" not in f
+        assert (f.rounds, f.prior_pos_std, f.prior_vel_std) == (10, 1000.0, 1000.0)
+        assert "fg" not in f and "iterations" not in f  # the identification's: learner=fg_identification
+        return
     if option == "rbpf_em_lin":  # the RBPF over noise modes (any tracking sensor): its own values, the EM the learner's
         from dslearn.methods.rbpf_modes import RBPFModesMethod
 
@@ -462,6 +470,13 @@ def _check_method(option, cfg, world):
         learner = {"fg_ekf": "fg_identification", "rbpf_em": "online_em"}[option]
         assert cfg.learner == _compose(f"learner={learner}").learner  # its own learner, set explicitly
         return
+    if option == "fg_ekf_lin":  # its filter option and learner=fg_identification started at constant velocity
+        assert cfg.filter == _compose("filter=fg_ekf_lin").filter
+        plain = _compose("learner=fg_identification").learner
+        assert cfg.learner.iterations == plain.iterations
+        assert dict(cfg.learner.fg) == {**plain.fg, "init_guess": [1.0, 0.0], "taylor_point": "guess",
+                                        "measurement_var": "known"}
+        return
     if option == "rbpf_em_lin":  # the RBPF over noise modes: its filter option, the scenario's own sensor model,
         assert cfg.filter == _compose("filter=rbpf_em_lin").filter  # the statistics part, its learner
         assert cfg.observation == _compose("observation=sensor").observation
@@ -546,9 +561,9 @@ CHECKS = {"data": _check_data, "associator": _check_associator, "learner": _chec
           "scenario": _check_scenario}
 EXPECTED_OPTIONS = {"data": {"paper", "small"}, "associator": set(ASSOCIATOR_CLASSES), "learner": set(LEARNER_CLASSES), "dataset": set(DATASETS), "folds": {"ethucy"}, "lstm": {"default"},
                     "task": set(TASKS), "filter": {"default", "ukf", "ukf_mm", "adf", "pf", "dgpt", "fg_ekf", "rbpf_em",
-                                                       "rbpf_em_lin"},
+                                                       "rbpf_em_lin", "fg_ekf_lin"},
                     "method": {f"{f}_{m}_{c}" for f in ("ekf", "ukf") for m in PRESET_MODELS for c in PRESET_FUSIONS}
-                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "rbpf_em", "rbpf_em_lin", "ekf_lin_hybrid_backprop", "adf_gp_hybrid",
+                    | {"dgpt_gpoe", "dgpt_rbcm", "fg_ekf", "fg_ekf_lin", "rbpf_em", "rbpf_em_lin", "ekf_lin_hybrid_backprop", "adf_gp_hybrid",
                        "ukf_mm_gp_hybrid", "pf_gp_hybrid", "ekf_sfm_hybrid_backprop", "ekf_gp_hybrid_backprop",
                        "ekf_lstm_hybrid_backprop", "ekf_lin_hybrid_calibrated", "ekf_sfm_hybrid_calibrated",
                        "ekf_gp_hybrid_calibrated", "ekf_lstm_hybrid_calibrated", "ekf_lin_hybrid_gnn",
@@ -690,8 +705,8 @@ def test_fusion_contract(option, yu_world):
 
 
 # ---------------------------------------------------------------------------- filter: predict
-@pytest.mark.parametrize("option", [o for o in _options("filter") if o not in ("dgpt", "fg_ekf", "rbpf_em",
-                                                                                "rbpf_em_lin")])  # no prediction step
+@pytest.mark.parametrize("option", [o for o in _options("filter") if o not in ("dgpt", "fg_ekf", "fg_ekf_lin",
+                                                                                "rbpf_em", "rbpf_em_lin")])  # no prediction step
 def test_predict_step_contract(option, yu_world):
     """Every prediction step equals the Kalman prediction for the linear (constant-velocity) model. A step for GP
     motion models only (``adf``, ``ukf_mm``) refuses it, and is checked on the GP that is that linear model: the

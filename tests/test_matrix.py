@@ -127,6 +127,12 @@ def test_a_cell_that_does_not_fit_is_refused_before_any_work():
 
     spec = ScenarioSpec("jiang_like", "squared_range", 1, "param2d", 1.0, 10, networked=False)
     assert "needs measurement position; scenario jiang_like has squared_range" in DGPTMethod.fits(None, spec)
+    from dslearn.methods.factor_graph import FactorGraphMotionMethod
+
+    assert FactorGraphMotionMethod.spec_misfit(spec) == (  # the FG family on position sensors: for a person
+        "the factor-graph identification of a motion model + EKF on position sensors (sensors that measure the "
+        "positions of targets with a [px, py, vx, vy] state) needs measurement position; scenario jiang_like has "
+        "squared_range")
     # why, intrinsically: a sensor's own GP expert regresses positions that one scalar reading does not fix
     assert "a sensor alone has no position to regress" in DGPTMethod.fits(None, spec)
     # the distributed filter takes squared ranges (its observation part declares which readings it explains)
@@ -175,6 +181,8 @@ def _expected_fit(preset_cfg, scenario) -> bool:
         return spec.measurement == "position"
     if engine.endswith("FactorGraphMethod"):  # Jiang's identification + EKF-FG: squared-range sensors
         return spec.measurement == "squared_range"
+    if engine.endswith("FactorGraphMotionMethod"):  # the FG identification of a [p, v] motion model: position sensors
+        return spec.measurement == "position" and spec.state == "pv2d" and spec.kind == "targets"
     if engine.endswith("RBPFMethod"):  # Braga's RBPF + online EM: terrain altimeters on a network
         return spec.measurement == "terrain_altitude" and spec.networked
     if engine.endswith("RBPFModesMethod"):  # a Kalman filter of [p, v] per particle: position sensors; with the

@@ -11,6 +11,8 @@ stops the run there):
   that step; the consensus weights are nonzero exactly on the sensors' graph;
 * Liu's DGPT: its tracker gets the scenario's sensors (one expert each) and step;
 * Jiang's FG-EKF: its tracker gets the scenario's sensors and their noise ``sigma_y``;
+* the FG-EKF on position sensors: its identification (on the training measurements) and its tracker (on the test
+  ones) get the sensors' noise, the scenario's step and area;
 * Braga's RBPF: its filters step with the scenario's ``T``, over the scenario's map, and the statistics consensus
   weights are nonzero exactly on the formation's graph;
 * the RBPF over noise modes (``rbpf_em_lin``): its filters step with the scenario's ``dt``, the EM's initial modes are
@@ -21,6 +23,7 @@ stops the run there):
 from __future__ import annotations
 
 import functools
+import types
 
 import pytest
 import torch
@@ -28,7 +31,7 @@ import torch
 from dslearn import api
 from dslearn.compose import _Slots, build_network
 from dslearn.data.ethucy import data_available
-from dslearn.episodes import Measurements
+from dslearn.episodes import Episodes, Measurements
 from dslearn.errors import ConfigError
 from dslearn.schemas.matrix import _MetaSlots
 
@@ -47,7 +50,8 @@ PHYSICS = {
 POSITION = ["yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "corridor"] + (["eth_zara1"] if data_available() else [])
 #: one preset per method family, on every scenario it fits
 CELLS = ([(m, s) for m in ("ekf_lin_hybrid", "ekf_gp_hybrid", "ekf_lstm_hybrid", "dgpt_rbcm") for s in POSITION]
-         + [("ukf_sfm_hybrid", "yu_two_agents"), ("fg_ekf", "jiang"), ("rbpf_em", "braga")])
+         + [("ukf_sfm_hybrid", "yu_two_agents"), ("fg_ekf", "jiang"), ("rbpf_em", "braga")]
+         + [("fg_ekf_lin", s) for s in POSITION])
 #: the RBPF over noise modes: every node's Kalman filters on position sensors, a fusion centre's on Jiang's
 CELLS += [("rbpf_em_lin", "yu_two_agents"), ("rbpf_em_lin", "liu_s1"), ("rbpf_em_lin", "jiang")]
 #: overridden physics: (method, scenario, override, noise, dt) the cell must use instead of the scenario's file
@@ -64,6 +68,10 @@ OVERRIDDEN = [
     ("rbpf_em", "braga", "scenario.dt=0.1", 4.0, 0.1),
     ("rbpf_em_lin", "jiang", "scenario.sigma_y=3.0", 3.0, 1.0),
     ("rbpf_em_lin", "liu_s1", "scenario.meas_std=0.7", 0.7, 1.0),
+    ("fg_ekf_lin", "liu_s2", "scenario.meas_std=0.7", 0.7, 1.0),
+    ("fg_ekf_lin", "liu_s3", "scenario.dt=0.5", 2.0, 0.5),
+    ("fg_ekf_lin", "corridor", "scenario.network.meas_std=0.5", 0.5, 0.4),
+    ("fg_ekf_lin", "yu_two_agents", "network.meas_std=0.35", 0.35, 0.25),
 ]
 
 
@@ -114,7 +122,7 @@ def _check_method(monkeypatch, scenario, net, method, noise: float, dt: float):
     from dslearn.methods import dgpt as dgpt_mod, distributed as dist_mod, rbpf as rbpf_mod
     from dslearn.methods.dgpt import DGPTMethod
     from dslearn.methods.distributed import DistributedFilter
-    from dslearn.methods.factor_graph import FactorGraphMethod
+    from dslearn.methods.factor_graph import FactorGraphMethod, FactorGraphMotionMethod
     from dslearn.methods.rbpf import RBPFMethod
     from dslearn.methods.rbpf_modes import RBPFModesMethod
 
@@ -154,6 +162,29 @@ def _check_method(monkeypatch, scenario, net, method, noise: float, dt: float):
         seen = got.value.seen
         assert seen["sigma_y"] == pytest.approx(noise, rel=1e-12)
         assert torch.equal(seen["h"].sensors, scenario.sensors) and seen["samples"].shape[2] == net.num_sensors
+    elif isinstance(method, FactorGraphMotionMethod):
+        learned = {}
+
+        def learn(train, sigma, dt, area):
+            learned.update(train=train, sigma=sigma, dt=dt, area=area)
+            return types.SimpleNamespace(theta=torch.tensor([1.0, 0.0], dtype=torch.float64))
+
+        def track(test, theta, sigma, dt, area):
+            raise Caught(test=test, theta=theta, sigma=sigma, dt=dt, area=area)
+
+        monkeypatch.setattr(method, "learn", learn)
+        monkeypatch.setattr(method, "track", track)
+        test = _zeros(scenario, net)
+        train = Episodes(torch.zeros(1, scenario.spec.steps + 1, 4 * scenario.spec.num_agents, dtype=torch.float64),
+                         test.meas, test.visible)
+        with pytest.raises(Caught) as got:
+            method.estimate(scenario, net, train, test, 0)
+        seen = got.value.seen
+        for part in (learned, seen):  # the identification and the tracker: the cell's sensors' noise, step, area
+            assert part["sigma"] == pytest.approx(noise, rel=1e-12) and part["dt"] == pytest.approx(dt, rel=1e-12)
+            assert tuple(part["area"]) == tuple(scenario.area)
+        assert learned["train"].meas is train.meas and seen["test"] is test and seen["theta"].tolist() == [1.0, 0.0]
+        assert test.meas.shape[0] == net.num_nodes  # every node's measurements reach it (the fusion centre's)
     elif isinstance(method, RBPFMethod):
         assert torch.equal(_graph(method.fusion.weights), net.adjacency)
 

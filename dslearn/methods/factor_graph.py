@@ -11,6 +11,11 @@ node, the fusion centre. The identification is online within every episode: the 
 it nothing. It takes no motion model, observation model or fusion part: the sensors' squared-range model is
 the scenario's (its sensor positions and ``sigma_y``, the scenario's network), the fusion is the factor
 graph's own message passing.
+
+:class:`FactorGraphMotionMethod` (``filter=fg_ekf_lin``) is the family's form for position sensors: the same
+messages identify the parameters of a motion model, a damped constant-velocity model ``theta = (a, ln q)``, from
+the training episodes' measurements (:mod:`dslearn.learning.factor_graph.motion`), and a Kalman filter with the
+identified model tracks every target of the test episodes at the fusion centre.
 """
 
 from __future__ import annotations
@@ -151,3 +156,145 @@ class FactorGraphMethod:
         tracker = EkfFgTracker(h, self.settings, sig, torch.tensor([self.iterations], device=samples.device), lsm)
         mean, var = tracker.run(samples[None])
         return mean[0], var[0]
+
+
+# ------------------------------------------------------------------------------- the position-sensor form
+#: the learner's settings (``learner.fg``) the position form cannot use: (key, the value it needs, why)
+_LIN_NEEDS = (
+    ("init_guess_mode", "fixed", "the identification runs on the training episodes before any tracking, so there is "
+                                 "no prediction to start from; the start is learner.fg.init_guess"),
+    ("taylor_point", "guess", "the first Taylor point is learner.fg.init_guess (there is no tracker prediction in "
+                              "the training episodes); each round re-expands at its estimate"),
+    ("measurement_var", "known", "the innovations' variances follow from the scenario's sensors' known noise, one "
+                                 "measurement per node and step (no repeated samples to take a variance from)"),
+    ("relinearize", False, "the rounds (filter.rounds) re-expand the innovations at every estimate"),
+    ("crlb_form", "trace_inverse", "its tracker is a Kalman filter of the identified model, which takes no CRLB"),
+)
+
+
+def _count(key: str, v, low: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < low:
+        raise ConfigError(f"{key}={v!r} must be an integer >= {low}")
+    return int(v)
+
+
+@dataclasses.dataclass
+class FactorGraphMotionMethod:
+    """The factor-graph identification of a motion model from position measurements + a Kalman filter with it: the
+    position-sensor form of Jiang et al.'s method (:mod:`dslearn.learning.factor_graph.motion`).
+
+    From the training episodes' measurements (never their truth) the fusion centre identifies
+    ``theta = (a, ln q)`` of the damped constant-velocity model ``x_{k+1} = F(a) x_k + w``, ``w ~ N(0, q G G^T)``
+    by the factor graph's Gaussian messages over the innovations of a Kalman filter through every training track
+    (each target of each episode; a step no node sees is a prediction alone); then it tracks every target of the
+    test episodes with that model and the scenario's sensors (their noise ``sigma``, the nodes that see each target
+    at each step), each target from the diffuse prior at its prior point (:func:`dslearn.filters.distributed.prior_means`).
+    With a linear model and linear sensors the EKF is the Kalman filter.
+
+    Args:
+        rounds: the most rounds of the identification (each re-expands the innovations at its estimate and runs
+            ``learner.iterations`` message-passing iterations).
+        prior_pos_std, prior_vel_std: the diffuse prior of a target not yet seen [m], [m/s].
+        learner: the identification (:class:`~dslearn.learning.learners.FactorGraphIdentification`: its
+            ``iterations`` per round and ``fg`` settings, ``init_guess = (a, ln q)``); ``None``: its defaults with the
+            position form's start, ``init_guess = (1, 0)`` (constant velocity, ``q = 1``), ``taylor_point=guess``,
+            ``measurement_var=known``.
+    """
+
+    learners = ("fg_identification",)
+
+    rounds: int = 10
+    prior_pos_std: float = 1000.0
+    prior_vel_std: float = 1000.0
+    learner: Any = None
+
+    def __post_init__(self) -> None:
+        if self.learner is None:
+            self.learner = FactorGraphIdentification(fg={"init_guess": [1.0, 0.0], "taylor_point": "guess",
+                                                         "measurement_var": "known"})
+        elif not isinstance(self.learner, FactorGraphIdentification):
+            raise refuse(self.learner, "the factor-graph EKF on position sensors (filter=fg_ekf_lin) identifies its "
+                                       "motion model over the factor graph", self.learners)
+        fg = self.learner.fg
+        for key, need, why in _LIN_NEEDS:
+            if fg[key] != need:
+                shown = str(need).lower() if isinstance(need, bool) else need
+                raise ConfigError(f"learner.fg.{key}={fg[key]!r} does not apply to filter=fg_ekf_lin: {why}; "
+                                  f"allowed: {shown}")
+        self.rounds = _count("filter.rounds", self.rounds, 1)
+        for key in ("prior_pos_std", "prior_vel_std"):
+            v = _number(f"filter.{key}", getattr(self, key))
+            if not 0.0 < v < float("inf"):
+                raise ConfigError(f"filter.{key}={getattr(self, key)!r} must be > 0 (finite)")
+            setattr(self, key, v)
+        #: the last identification (:class:`~dslearn.learning.factor_graph.motion.MotionIdentification`)
+        self.identified = None
+
+    @property
+    def iterations(self) -> int:
+        """FG message-passing iterations per round (the learner's ``iterations``)."""
+        return self.learner.iterations
+
+    @property
+    def label(self) -> str:
+        return f"fg_ekf_lin t={self.iterations}"
+
+    @staticmethod
+    def spec_misfit(spec: ScenarioSpec) -> str | None:
+        """What the engine needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`): sensors that
+        measure the targets' positions, ``[px, py, vx, vy]`` targets (the model's state)."""
+        return require(spec, "the factor-graph identification of a motion model + EKF on position sensors (sensors "
+                             "that measure the positions of targets with a [px, py, vx, vy] state)",
+                       measurement="position", state="pv2d", kind="targets")
+
+    def fits(self, spec: ScenarioSpec) -> str | None:
+        return FactorGraphMotionMethod.spec_misfit(spec)
+
+    def _start(self, num_tracks: int, num_agents: int, area, dtype, device):
+        from dslearn.filters.distributed import prior_means
+
+        m0 = prior_means(num_agents, area).to(device, dtype).repeat(num_tracks // num_agents, 1)
+        p0 = torch.diag(torch.tensor([self.prior_pos_std ** 2] * 2 + [self.prior_vel_std ** 2] * 2, dtype=dtype,
+                                     device=device)).expand(num_tracks, 4, 4)
+        return m0, p0
+
+    def learn(self, train: Measurements, sigma: float, dt: float, area):
+        """The identification on the training episodes' measurements: a
+        :class:`~dslearn.learning.factor_graph.motion.MotionIdentification`."""
+        from dslearn.learning.factor_graph.motion import fuse, identify_motion
+
+        z, n = fuse(train.meas.to(torch.float64), train.visible)
+        m0, p0 = self._start(z.shape[0], train.meas.shape[3], area, z.dtype, z.device)
+        fg = self.learner.fg
+        prior = float("inf") if fg["prior_var"] is None else float(fg["prior_var"])
+        return identify_motion(z, n, dt, sigma, m0, p0, fg["init_guess"], iterations=self.iterations,
+                               rounds=self.rounds, init_var=float(fg["init_var"]), prior_var=prior,
+                               schedule=fg["schedule"], damping=float(fg["damping"]), graph=fg["graph"],
+                               lambda_tol=float(fg["lambda_tol"]), converge_tol=float(fg["converge_tol"]))
+
+    def track(self, test: Measurements, theta: torch.Tensor, sigma: float, dt: float, area):
+        """The Kalman filter of the model ``theta`` at the fusion centre on every target of ``test``: position means
+        ``(B, K+1, A, 2)`` and covariances ``(B, K+1, A, 2, 2)``."""
+        from dslearn.learning.factor_graph.motion import fuse, kalman
+
+        z, n = fuse(test.meas.to(torch.float64), test.visible)
+        b, t1, a = test.meas.shape[1], test.meas.shape[2], test.meas.shape[3]
+        m0, p0 = self._start(z.shape[0], a, area, z.dtype, z.device)
+        with torch.no_grad():
+            kp = kalman(theta.to(z), z, n, dt, sigma, m0, p0)
+        mean = kp.mean[..., :2].reshape(b, a, t1, 2).transpose(1, 2)
+        cov = kp.cov[..., :2, :2].reshape(b, a, t1, 2, 2).transpose(1, 2)
+        return mean, cov
+
+    def estimate(self, scenario: Scenario, network: SensorNetwork, train: Episodes, test: Measurements,
+                 seed: int) -> Estimates:
+        """Identify the model on ``train``'s measurements, then track ``test`` with it (one reporting node, the
+        fusion centre)."""
+        sigma, dt = float(network.meas_std), float(scenario.spec.dt)
+        self.identified = self.learn(train.measurements, sigma, dt, scenario.area)
+        mean, cov = self.track(test, self.identified.theta, sigma, dt, scenario.area)
+        if not (torch.isfinite(mean).all() and torch.isfinite(cov).all()):
+            raise FloatingPointError("non-finite estimate of the factor-graph EKF on position sensors (this is a bug)")
+        dtype = test.meas.dtype
+        return Estimates(mean[None].to(dtype), cov[None].to(dtype), [NODE],
+                         torch.ones(1, dtype=torch.bool, device=mean.device))

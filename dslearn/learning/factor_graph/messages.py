@@ -34,8 +34,25 @@ from torch import Tensor
 from dslearn.types import batch_jacobian
 
 
+class LinearMeasurement:
+    """A measurement function linear in the parameters, ``h(x) = slopes x + offset``: its Taylor coefficients
+    (Eqs. 8-9) are its own, at any point (:func:`linearize` reads them instead of differentiating ``N`` outputs).
+
+    Args:
+        slopes: ``(N, M)``; offset: ``(N,)`` (``None``: zero).
+    """
+
+    def __init__(self, slopes: Tensor, offset: Tensor | None = None):
+        self.slopes = slopes.detach()
+        self.offset = torch.zeros_like(self.slopes[:, 0]) if offset is None else offset.detach()
+
+    def __call__(self, x: Tensor) -> Tensor:
+        return x @ self.slopes.T + self.offset
+
+
 def linearize(h: Callable[[Tensor], Tensor], beta: Tensor) -> tuple[Tensor, Tensor]:
-    """First-order Taylor coefficients of ``h`` at ``beta`` by autograd (Eqs. 6-9).
+    """First-order Taylor coefficients of ``h`` at ``beta`` by autograd (Eqs. 6-9); a
+    :class:`LinearMeasurement` gives its own.
 
     Args:
         h: row-wise measurement function ``(*B, M) -> (*B, N)``.
@@ -44,6 +61,10 @@ def linearize(h: Callable[[Tensor], Tensor], beta: Tensor) -> tuple[Tensor, Tens
     Returns:
         ``lam (*B, N, M)`` (Eq. 8) and ``gamma (*B, N)`` (Eq. 9).
     """
+    if isinstance(h, LinearMeasurement):
+        n, m = h.slopes.shape
+        return (h.slopes.to(beta).expand(*beta.shape[:-1], n, m),
+                h.offset.to(beta).expand(*beta.shape[:-1], n))
     lam = batch_jacobian(h, beta)
     with torch.no_grad():
         h0 = h(beta.detach())
