@@ -166,7 +166,7 @@ def test_labels_associator_keeps_every_labelled_cell_bit_identical(make_cfg, met
     assert "gnn" not in str(base["method"].iloc[0])
 
 
-@pytest.mark.parametrize("method", ["ekf_lin_hybrid_gnn", "ekf_lin_hybrid_jpda", "ekf_gp_hybrid_gnn"])
+@pytest.mark.parametrize("method", ["ekf_lin_hybrid_gnn", "ekf_lin_hybrid_jpda", "ekf_gp_hybrid_gnn", "ekf_gp_hybrid_jpda"])
 def test_every_association_preset_runs_on_unlabelled_detections(make_cfg, method):
     """A tiny cell per preset: finite RMSE of the matched tracks, GOSPA with its parts adding up, OSPA, identity
     switches, for every node and test episode."""
