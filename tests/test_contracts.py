@@ -148,13 +148,6 @@ def _check_filter(option, cfg, world):
         assert get_object(cfg.filter._target_) is DGPTMethod and "predict" not in cfg.filter
         assert (cfg.filter.window, cfg.filter.gp_input) == (10, "temporal") and "hyper" not in cfg.filter
         return
-    if option.endswith(("_gnn", "_jpda")):  # a preset's parts on unlabelled detections: its base and an associator
-        base, _, assoc = option.rpartition("_")
-        assert {k: cfg[k] for k in ("filter", "model", "observation", "consensus", "learner")} == \
-            {k: _compose(f"method={base}")[k] for k in ("filter", "model", "observation", "consensus", "learner")}
-        assert cfg.associator == _compose(f"associator={assoc}").associator
-        return
-    assert cfg.associator == _compose().associator  # every other preset: the labels given (the default)
     if option in ("fg_ekf", "rbpf_em"):  # Jiang's FG + EKF-FG, Braga's RBPF + online EM: the studies' values
         from dslearn.methods.factor_graph import FactorGraphMethod
         from dslearn.methods.rbpf import RBPFMethod
@@ -464,6 +457,13 @@ def _check_method(option, cfg, world):
         assert cfg.observation == _compose().observation  # the linear position sensor (whose R it learns)
         assert cfg.learner == _compose("learner=calibrate").learner  # the learner's own settings, unchanged
         return
+    if option.endswith(("_gnn", "_jpda")):  # a preset's parts on unlabelled detections: its base and an associator
+        base, _, assoc = option.rpartition("_")
+        assert {k: cfg[k] for k in ("filter", "model", "observation", "consensus", "learner")} == \
+            {k: _compose(f"method={base}")[k] for k in ("filter", "model", "observation", "consensus", "learner")}
+        assert cfg.associator == _compose(f"associator={assoc}").associator
+        return
+    assert cfg.associator == _compose().associator  # every other preset: the labels given (the default)
     if option in ("fg_ekf", "rbpf_em"):  # Jiang's / Braga's method: its filter option (and the statistics part)
         assert cfg.filter == _compose(f"filter={option}").filter
         assert option == "fg_ekf" or cfg.consensus == _compose("consensus=statistics").consensus
