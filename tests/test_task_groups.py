@@ -70,8 +70,8 @@ LINES = {
     "data": ("data=small", "data.train_episodes=5"),
     # the learner: an option the matrix's context (model=lin) takes, and the group removed (its default is null)
     "learner": ("learner=none", "~learner"),
-    # the associator: its default option, and another option (a matrix cell on a labelled scenario composes with it)
-    "associator": ("associator=labels", "associator=gnn"),
+    # the associator: its default option, and the group removed (the labels given, as with its default)
+    "associator": ("associator=labels", "~associator"),
 }
 
 

@@ -2,7 +2,8 @@ r"""Data association of unlabelled detections to tracks, for one node: gating wi
 covariance (:mod:`.gating`), the associators behind one interface (:class:`.base.Associator`): the labels given
 (:class:`.labels.LabelsGiven`, the labelled scenarios' behaviour), global nearest neighbour
 (:class:`.gnn.GNN`) and JPDA (:class:`.jpda.JPDA`), and track management (:mod:`.tracks`: initiation,
-confirmation, deletion). Float64 throughout; the measurement model is the project's
+confirmation, deletion); on a sensor network, every node's association with its own tracks before the consensus
+and the ``associator=`` slot of the distributed filter (:mod:`.network`). Float64 throughout; the measurement model is the project's
 :class:`~dslearn.models.base.ObservationModel` (its reading, Jacobian and noise covariance)."""
 
 from dslearn.association.base import Association, Associator, MeasurementPrediction, kalman_update, predict_measurement
