@@ -58,7 +58,7 @@ def test_every_cli_snippet_passes_the_up_front_check(command, tmp_path):
             combos, multirun, master = sweep_combinations(argv)
         methods = len(list((CONF_DIR / "method").glob("*.yaml")))
         scenarios = len(str(master.hydra.sweeper.params.scenario).split(","))
-        assert multirun and len(combos) == methods * scenarios == 51 * 9, (len(combos), methods, scenarios)
+        assert multirun and len(combos) == methods * scenarios == 52 * 9, (len(combos), methods, scenarios)
         return
     # the sweep / run folders a snippet names are the reader's; the check must not need them to exist
     argv = [a for a in argv if not a.startswith(("hydra.sweep.dir=", "hydra.run.dir="))]
@@ -82,3 +82,29 @@ def test_python_snippets_run(tmp_path, monkeypatch, capsys):
             if df is not None:
                 assert set(df[df.metric == "track_rmse"].node) >= {"sensor1", "comm1"}
     assert list(tmp_path.iterdir()) == []  # the API writes no files
+
+
+def test_the_default_run_and_sweep_folders_the_docs_name_are_the_configs():
+    """The README and the docs name the default run folder and sweep folder as ``conf/config.yaml`` makes them
+    (``outputs/<study>/<date>_<time>``, ``multirun/<study>/<date>_<time>/<job>``), and no other form."""
+    import yaml
+
+    from dslearn.schemas.core import CONF_DIR
+
+    hydra = yaml.safe_load((CONF_DIR / "config.yaml").read_text(encoding="utf-8"))["hydra"]
+    words = {"${study}": "<study>", "${now:%Y-%m-%d_%H-%M-%S}": "<date>_<time>", "${hydra.job.num}": "<job>"}
+
+    def shown(pattern: str) -> str:
+        for k, v in words.items():
+            pattern = pattern.replace(k, v)
+        return pattern
+
+    run, sweep = shown(hydra["run"]["dir"]), shown(hydra["sweep"]["dir"]) + "/" + shown(str(hydra["sweep"]["subdir"]))
+    assert (run, sweep) == ("outputs/<study>/<date>_<time>", "multirun/<study>/<date>_<time>/<job>")
+    docs = Path(__file__).resolve().parents[1] / "docs"
+    for page in [README, *docs.rglob("*.md")]:
+        text = page.read_text(encoding="utf-8")
+        for named in re.findall(r"\b(outputs|multirun)/(<[^`\s]*)", text):
+            path = "/".join(named).rstrip("/")
+            expected = run if named[0] == "outputs" else sweep
+            assert expected.startswith(path), (page.name, path, expected)
