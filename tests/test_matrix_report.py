@@ -170,3 +170,6 @@ def test_a_single_run_folder_is_labelled_by_its_overrides(tmp_path):
     assert list(vals["method_label"]) == ["ekf a"] and list(vals["scenario_name"]) == ["yu"]
     assert rep.option_labels(["filter=ukf", "model=lin", "consensus=ci", "scenario=liu_s1", "seed=3"]) == (
         "filter=ukf model=lin consensus=ci", "liu_s1")
+    # the associator is a part too: a preset swept over it gives one row per associator
+    assert rep.option_labels(["method=ekf_lin_hybrid_gnn", "associator=jpda", "scenario=yu_crowd_clutter"]) == (
+        "ekf_lin_hybrid_gnn associator=jpda", "yu_crowd_clutter")

@@ -49,7 +49,7 @@ NEES_NAME = "position NEES/2A"
 NEES_TEXT = ("position NEES / 2A: the NEES of the targets' positions over their 2A degrees of freedom (A targets), "
              "mean over the steps; 1 = consistent")
 #: the parts of a method a row label names (beside the preset)
-PART_GROUPS = ("method", "filter", "model", "observation", "consensus", "learner")
+PART_GROUPS = ("method", "filter", "model", "observation", "consensus", "learner", "associator")
 VALUE_COLUMNS = ["method", "scenario", "method_label", "scenario_name", "units", "status", "rmse_mean", "rmse_lo",
                  "rmse_hi", "n_units", "seeds", "nees_pos_per_dim_mean", "nees_pos_per_dim_lo",
                  "nees_pos_per_dim_hi", "nees_pos_per_dim_consistent_lo", "nees_pos_per_dim_consistent_hi",
