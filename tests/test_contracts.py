@@ -221,6 +221,12 @@ def _check_model(option, cfg, world):
     if option == "lin":  # the paper's LIN: Q = 0.1^2 I
         assert type(m) is ConstantVelocity and m.noise_std == 0.1
         return
+    if option == "cv_damped":  # the damped constant-velocity model; a = 1, q = null: LIN (its values)
+        from dslearn.models.constant_velocity import DampedConstantVelocity
+
+        assert type(m) is DampedConstantVelocity and (m.a, m.q, m.noise_std) == (1.0, None, 0.1)
+        assert not m.learnable and not m.learns_offline
+        return
     if option == "gp_cv":  # the increment GP's keys with the constant-velocity prior mean at the scenario's dt
         assert type(m) is GPMotionModel and cfg.model.name == "gp_increment_cv" and (m.variant, m.noise_mode) == ("exact", "latent")
         assert m.gp.mean_type == "constant_velocity" and m.gp.num_nodes == S
@@ -477,6 +483,15 @@ def _check_method(option, cfg, world):
         assert dict(cfg.learner.fg) == {**plain.fg, "init_guess": [1.0, 0.0], "taylor_point": "guess",
                                         "measurement_var": "known"}
         return
+    if option == "ekf_cv_fg_individual":  # the EKF with model=cv_damped, its (a, q) from learner=fg_identification
+        assert {k: cfg[k] for k in ("filter", "observation", "consensus")} == \
+            {k: _compose("method=ekf_lin_individual")[k] for k in ("filter", "observation", "consensus")}
+        assert cfg.model == _compose("model=cv_damped").model
+        plain = _compose("learner=fg_identification").learner
+        assert cfg.learner.iterations == plain.iterations
+        assert dict(cfg.learner.fg) == {**plain.fg, "init_guess": [1.0, 0.0], "taylor_point": "guess",
+                                        "measurement_var": "known"}
+        return
     if option == "rbpf_em_lin":  # the RBPF over noise modes: its filter option, the scenario's own sensor model,
         assert cfg.filter == _compose("filter=rbpf_em_lin").filter  # the statistics part, its learner
         assert cfg.observation == _compose("observation=sensor").observation
@@ -567,7 +582,8 @@ EXPECTED_OPTIONS = {"data": {"paper", "small"}, "associator": set(ASSOCIATOR_CLA
                        "ukf_mm_gp_hybrid", "pf_gp_hybrid", "ekf_sfm_hybrid_backprop", "ekf_gp_hybrid_backprop",
                        "ekf_lstm_hybrid_backprop", "ekf_lin_hybrid_calibrated", "ekf_sfm_hybrid_calibrated",
                        "ekf_gp_hybrid_calibrated", "ekf_lstm_hybrid_calibrated", "ekf_lin_hybrid_gnn",
-                       "ekf_lin_hybrid_jpda", "ekf_gp_hybrid_gnn", "ekf_gp_hybrid_jpda"}, "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit"},
+                       "ekf_lin_hybrid_jpda", "ekf_gp_hybrid_gnn", "ekf_gp_hybrid_jpda", "ekf_cv_fg_individual"},
+                    "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit", "cv_damped"},
                     "observation": {"linear", "gp", "sensor", "squared_range", "range", "bearing", "terrain"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
                     "network": {"yu", "yu_blind"},
                     "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1",

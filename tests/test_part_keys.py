@@ -64,7 +64,7 @@ CONTEXTS = {"yu": ["task=yu"], "yu_faults": ["experiment=yu_faults"], "ethucy_tr
 #: learn: [model] itself, at construction: tests/test_backprop_models.py.) A key of another group counts where the option
 #: makes it unread (against the same context without the option).
 _GP = ("gp", "gp_adaptive", "gp_cv", "gp_increment", "gp_increment_rbcm", "gp_rbcm", "gp_sgpr", "gp_ssgp", "gp_window")
-_NO_ONLINE = ("lin", "sfm", "sfm_fit", "lstm", "social_lstm")
+_NO_ONLINE = ("lin", "cv_damped", "sfm", "sfm_fit", "lstm", "social_lstm")
 
 
 def _refused_table() -> set[tuple[str, str, str]]:

@@ -8,7 +8,8 @@ stops the run there):
 
 * the distributed filter (EKF/UKF with LIN, the social force, the GP, the LSTM): the observation model's ``R`` is
   ``meas_std^2 I``; the learner gets the cell's sensors and the scenario's step (``ctx.dt``); the LSTM is built for
-  that step; the consensus weights are nonzero exactly on the sensors' graph;
+  that step; the consensus weights are nonzero exactly on the sensors' graph; ``learner=fg_identification`` gets
+  the training episodes' true tracks and the scenario's step;
 * Liu's DGPT: its tracker gets the scenario's sensors (one expert each) and step;
 * Jiang's FG-EKF: its tracker gets the scenario's sensors and their noise ``sigma_y``;
 * the FG-EKF on position sensors: its identification (on the training measurements) and its tracker (on the test
@@ -52,6 +53,8 @@ POSITION = ["yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "corridor"] + (["eth_
 CELLS = ([(m, s) for m in ("ekf_lin_hybrid", "ekf_gp_hybrid", "ekf_lstm_hybrid", "dgpt_rbcm") for s in POSITION]
          + [("ukf_sfm_hybrid", "yu_two_agents"), ("fg_ekf", "jiang"), ("rbpf_em", "braga")]
          + [("fg_ekf_lin", s) for s in POSITION])
+#: the distributed filter whose motion model the factor-graph identification sets: position sensors and Braga's
+CELLS += [("ekf_cv_fg_individual", s) for s in POSITION + ["braga"]]
 #: the RBPF over noise modes: every node's Kalman filters on position sensors, a fusion centre's on Jiang's
 CELLS += [("rbpf_em_lin", "yu_two_agents"), ("rbpf_em_lin", "liu_s1"), ("rbpf_em_lin", "jiang")]
 #: overridden physics: (method, scenario, override, noise, dt) the cell must use instead of the scenario's file
@@ -72,6 +75,9 @@ OVERRIDDEN = [
     ("fg_ekf_lin", "liu_s3", "scenario.dt=0.5", 2.0, 0.5),
     ("fg_ekf_lin", "corridor", "scenario.network.meas_std=0.5", 0.5, 0.4),
     ("fg_ekf_lin", "yu_two_agents", "network.meas_std=0.35", 0.35, 0.25),
+    ("ekf_cv_fg_individual", "braga", "scenario.dt=0.1", 4.0, 0.1),
+    ("ekf_cv_fg_individual", "liu_s1", "scenario.meas_std=0.7", 0.7, 1.0),
+    ("ekf_cv_fg_individual", "corridor", "scenario.network.meas_std=0.5", 0.5, 0.4),
 ]
 
 
@@ -128,7 +134,8 @@ def _check_method(monkeypatch, scenario, net, method, noise: float, dt: float):
 
     if isinstance(method, DistributedFilter):
         r = method.observation.noise_cov(torch.zeros(1, 4, dtype=torch.float64))[0]
-        assert torch.allclose(r, noise**2 * torch.eye(2, dtype=torch.float64), rtol=1e-12, atol=0.0)
+        dz = method.observation.meas_dim  # 2 position readings, 1 altitude (Braga's)
+        assert torch.allclose(r, noise**2 * torch.eye(dz, dtype=torch.float64), rtol=1e-12, atol=0.0)
         assert torch.equal(_graph(method.fusion.weights), net.adjacency)
         assert method.fusion.weights.shape == (net.num_nodes, net.num_nodes)
         if hasattr(method.model, "dt"):  # the LSTM: built for the scenario's step
@@ -143,6 +150,21 @@ def _check_method(monkeypatch, scenario, net, method, noise: float, dt: float):
         seen = got.value.seen
         assert seen["network"] is net and seen["obs"] is method.observation
         assert seen["ctx"].dt == pytest.approx(dt, rel=1e-12)
+        if hasattr(method.learner, "fit_motion"):  # learner=fg_identification: the true tracks and the step
+            def fit(model, states, step, pos_std, vel_std, seed):
+                raise Caught(model=model, states=states, dt=step, prior=(pos_std, vel_std), seed=seed)
+
+            monkeypatch.setattr(dist_mod, "OnlineLearner", lambda *args, **kw: types.SimpleNamespace(learnable=False))
+            monkeypatch.setattr(method.learner, "fit_motion", fit)
+            test = _zeros(scenario, net)
+            train = Episodes(torch.zeros(1, scenario.spec.steps + 1, 4 * scenario.spec.num_agents,
+                                         dtype=torch.float64), test.meas, test.visible)
+            with pytest.raises(Caught) as got:
+                method.estimate(scenario, net, train, test, 3)
+            seen = got.value.seen
+            assert seen["model"] is method.model and seen["states"] is train.states and seen["seed"] == 3
+            assert seen["dt"] == pytest.approx(dt, rel=1e-12)
+            assert seen["prior"] == (method.prior_pos_std, method.prior_vel_std)
     elif isinstance(method, DGPTMethod):
         def spy(z, vis, window, **kw):
             raise Caught(z=z, dt=kw["dt"])

@@ -13,7 +13,9 @@ part) carries it out and refuses one it cannot use, at composition (:class:`Lear
 - :class:`OnlineHyperparameters` (``learner=online_hyperparameters``): Liu et al.'s online learning of the
   GP experts' hyperparameters from the factorised likelihood, within each episode.
 - :class:`FactorGraphIdentification` (``learner=fg_identification``): Jiang et al.'s identification of the
-  source over the factor graph at every timing.
+  source over the factor graph at every timing; for the distributed filter, the identification of the damped
+  constant-velocity model's ``(a, q)`` (``model=cv_damped``) from the training episodes' true tracks, once, before
+  any tracking (:meth:`FactorGraphIdentification.fit_motion`).
 - :class:`~dslearn.learning.backprop.BackpropLearning` (``learner=backprop``): Q, R, the consensus weights,
   omega and a linear motion model's matrix learned by backpropagating through the distributed information
   filter and its consensus rounds (innovation likelihood; or supervised).
@@ -283,6 +285,28 @@ _FG_RANGES = (("init_var", 0.0, True), ("prior_var", 0.0, True), ("damping", 0.0
               ("converge_tol", 0.0, True))
 
 
+#: the settings (``learner.fg``) the identification of a motion model from true tracks needs: (key, value, why)
+MOTION_NEEDS = (
+    ("init_guess_mode", "fixed", "the identification runs on the training episodes' true tracks before any tracking, "
+                                 "so there is no prediction to start from; the start is learner.fg.init_guess"),
+    ("taylor_point", "guess", "the first Taylor point is learner.fg.init_guess (there is no tracker prediction in the "
+                              "training episodes); each round re-expands at its estimate"),
+    ("measurement_var", "known", "the true positions are measurements of a declared variance, one per agent and step "
+                                 "(no repeated samples to take a variance from)"),
+    ("relinearize", False, "the rounds re-expand the innovations at every estimate"),
+    ("crlb_form", "trace_inverse", "the filter tracks with the identified model, which takes no CRLB"),
+)
+#: the most rounds of the identification from true tracks (each re-expands the innovations at its estimate; the
+#: default of ``filter.rounds`` of ``filter=fg_ekf_lin``)
+MOTION_ROUNDS = 10
+#: the standard deviation [m] of the noise added to the true positions taken as measurements, and declared to the
+#: identification. Not zero: the identification minimises the filter's weighted prediction errors, and the filter's
+#: predictions depend on q only through q / r (r the measurements' variance; the diffuse prior aside), so exact
+#: positions (r -> 0) leave q unidentified (it stays at its guess or runs off); positions with noise of the declared
+#: variance identify q / r, hence q
+TRUTH_STD = 1e-2
+
+
 @dataclass
 class FactorGraphIdentification:
     """Jiang et al.'s identification of the source's parameter over the factor graph (Gaussian BP from the
@@ -328,6 +352,61 @@ class FactorGraphIdentification:
         for x in guess:
             _number("learner.fg.init_guess", x)
         self.fg = fg
+
+    # the identification of a motion model from true tracks (the distributed filter's learner)
+    @staticmethod
+    def motion_misfit(model: Any) -> str | None:
+        """Why the identification cannot learn ``model`` (``None`` where it can): it identifies the damped
+        constant-velocity model's ``(a, q)`` (:class:`~dslearn.models.constant_velocity.DampedConstantVelocity`)."""
+        from dslearn.models.constant_velocity import DampedConstantVelocity
+
+        if isinstance(model, DampedConstantVelocity):
+            return None
+        return (f"the factor-graph identification sets the damped constant-velocity model's (a, q) "
+                f"(model=cv_damped), not {type(model).__name__}'s")
+
+    def check_motion_settings(self, engine: str) -> None:
+        """Refuse the settings (``learner.fg``) the identification from true tracks cannot use (:data:`MOTION_NEEDS`):
+        ConfigError naming the key, the engine and the value it needs."""
+        for key, need, why in MOTION_NEEDS:
+            if self.fg[key] != need:
+                shown = str(need).lower() if isinstance(need, bool) else need
+                raise ConfigError(f"learner.fg.{key}={self.fg[key]!r} does not apply to {engine}: {why}; "
+                                  f"allowed: {shown}")
+
+    def fit_motion(self, model: Any, states: Any, dt: float, prior_pos_std: float, prior_vel_std: float,
+                   seed: int = 0) -> Any:
+        """Identify ``theta = (a, ln q)`` from the true tracks ``states (B, K+1, 4A)`` (each agent of each episode a
+        track; its true positions measurements of std :data:`TRUTH_STD`, that noise drawn from the stream
+        ``(seed, "fg_identification")``) with the factor graph's messages
+        (:func:`~dslearn.learning.factor_graph.motion.identify_motion`, at most :data:`MOTION_ROUNDS` rounds of
+        ``iterations`` iterations, from ``fg.init_guess``), each track's filter from the diffuse prior
+        (``prior_pos_std``, ``prior_vel_std``) at its first measured position, and set ``model``'s ``(a, q)``. Returns the
+        :class:`~dslearn.learning.factor_graph.motion.MotionIdentification`."""
+        import torch
+
+        from dslearn.learning.factor_graph.motion import identify_motion, truth_tracks
+        from dslearn.streams import stream_seed
+
+        why = self.motion_misfit(model)
+        if why is not None:
+            raise ConfigError(f"learner=fg_identification: {why}")
+        gen = torch.Generator().manual_seed(stream_seed(int(seed), "fg_identification"))
+        z, n = truth_tracks(states.detach().to(torch.float64), model.num_agents, TRUTH_STD, gen)
+        m0 = torch.cat([z[:, 0], torch.zeros_like(z[:, 0])], -1)
+        p0 = torch.diag(torch.tensor([prior_pos_std ** 2] * 2 + [prior_vel_std ** 2] * 2, dtype=z.dtype,
+                                     device=z.device)).expand(z.shape[0], 4, 4)
+        fg = self.fg
+        ident = identify_motion(z, n, float(dt), TRUTH_STD, m0, p0, fg["init_guess"], iterations=self.iterations,
+                                rounds=MOTION_ROUNDS, init_var=float(fg["init_var"]),
+                                prior_var=float("inf") if fg["prior_var"] is None else float(fg["prior_var"]),
+                                schedule=fg["schedule"], damping=float(fg["damping"]), graph=fg["graph"],
+                                lambda_tol=float(fg["lambda_tol"]), converge_tol=float(fg["converge_tol"]))
+        a, q = float(ident.theta[0]), float(ident.theta[1].exp())
+        if not (math.isfinite(a) and math.isfinite(q) and q > 0.0):
+            raise FloatingPointError(f"learner=fg_identification identified a={a!r}, q={q!r} (not a model)")
+        model.set_parameters(a, q, prefix="learner=fg_identification")
+        return ident
 
 
 #: ``conf/learner/<name>.yaml`` -> its class

@@ -1,8 +1,9 @@
 r"""Yu et al.'s method as parts: a distributed information filter (EKF or UKF prediction step) with a motion
 model, an observation model and a fusion strategy, and a learner (:mod:`dslearn.learning.learners`): the parts
 learn online while tracking the training episodes (``learner=online``, Algorithm 1: the GP models), the motion
-model offline from their true tracks before it (``learner=offline``: the LSTM) or nothing is learned
-(``learner=none``: LIN, the social force). Without a learner the parts decide (the natural learner)."""
+model offline from their true tracks before it (``learner=offline``: the LSTM; ``learner=fg_identification``: the
+damped constant-velocity model's ``(a, q)`` by the factor graph's messages) or nothing is learned (``learner=none``:
+LIN, the social force). Without a learner the parts decide (the natural learner)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ import torch
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
 from dslearn.filters.distributed import associated_belief, initial_belief, track
 from dslearn.fusion.strategies import Fusion, make_fusion
-from dslearn.learning.learners import NoLearning, OfflineLearning, OnlineLearning, refuse
+from dslearn.learning.learners import (FactorGraphIdentification, NoLearning, OfflineLearning, OnlineLearning,
+                                       refuse)
 from dslearn.learning.backprop import (SUPPORTED_MODELS, BackpropLearning, BackpropParameters, fit, motion_misfit,
                                        motion_parameters, takes_q)
 from dslearn.learning.calibrate import CalibrateLearning, ScaledSensor, calibrate_misfit, scaled_model
@@ -49,6 +51,8 @@ class DistributedFilter:
             needs a model with ``fit_offline``) or :class:`~dslearn.learning.learners.NoLearning`; ``None``: the
             natural learner of the parts (:func:`natural_learner`). A motion model that learns offline has no
             weights until trained: it takes ``offline`` only.
+            :class:`~dslearn.learning.learners.FactorGraphIdentification` (``model=cv_damped`` only): the model's
+            ``(a, q)`` identified from the training episodes' true tracks before any tracking (its ``fit_motion``).
         associator: the ``associator`` part (:mod:`dslearn.association.network`): ``None`` or ``labels`` = the
             labels the scenario gives (a labelled scenario); ``gnn`` or ``jpda``: every node associates its own
             detections with its predicted tracks, then the update and the consensus run per track (a scenario of
@@ -57,7 +61,7 @@ class DistributedFilter:
     """
 
     #: the learners it can use
-    learners = ("online", "offline", "none", "backprop", "calibrate")
+    learners = ("online", "offline", "none", "backprop", "calibrate", "fg_identification")
     #: how the config layer names it (:func:`dslearn.schemas.base.unread_keys`)
     config_label = "the distributed filter"
 
@@ -92,9 +96,15 @@ class DistributedFilter:
             if why is not None:
                 raise refuse(self.learner, why, [a for a in allowed if a != "calibrate"])
             return
+        if isinstance(self.learner, FactorGraphIdentification):  # sets a damped constant-velocity model's (a, q)
+            why = self.learner.motion_misfit(self.model)
+            if why is not None:
+                raise refuse(self.learner, why, allowed)
+            self.learner.check_motion_settings("the distributed filter (filter=default|ukf)")
+            return
         if not isinstance(self.learner, (OnlineLearning, OfflineLearning, NoLearning)):
             raise refuse(self.learner, "the distributed filter (filter=default|ukf) takes "
-                         "learner=online|offline|none|backprop|calibrate", allowed)
+                         "learner=online|offline|none|backprop|calibrate|fg_identification", allowed)
         if name in allowed:
             return
         model = f"model {self.model_name}"
@@ -175,6 +185,17 @@ class DistributedFilter:
         model = self.model if cal.q_scale == 1.0 else scaled_model(self.model, cal.q_scale)
         obs = self.observation if cal.r_scale == 1.0 else ScaledSensor(self.observation, cal.r_scale)
         return model, obs
+
+    def _fit_motion(self, model: MotionModel, train: Episodes, ctx, seed: int) -> None:
+        """A learner that sets the motion model's parameters from the training episodes' true tracks before any
+        tracking (``fit_motion``: ``learner=fg_identification``) does so; the values in :attr:`learned`."""
+        fit_motion = getattr(self.learner, "fit_motion", None)
+        if fit_motion is None:
+            return
+        ident = fit_motion(model, train.states, ctx.dt, self.prior_pos_std, self.prior_vel_std, seed)
+        self.learned = {"a": model.a, "q": model.q, "var": ident.var.tolist(), "rounds": ident.path.shape[0] - 1,
+                        "rows": ident.rows}
+        _LOG.info("learner=%s: %s", self.learner.name, self.learned)
 
     @property
     def label(self) -> str:
@@ -262,6 +283,7 @@ class DistributedFilter:
             learner = online(model, obs, fusion)
         if kind == "offline":  # supervised: learns from the training episodes' true tracks (once: the fit cache)
             fit_offline_cached(model, train.states, ctx.dt, seed)
+        self._fit_motion(model, train, ctx, seed)
         if kind in ("online", "offline") and learner.learnable:  # Algorithm 1 (offline: a learning observation model)
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())  # no evaluation at checkpoints
         res = learner.estimate(test)
@@ -288,6 +310,7 @@ class DistributedFilter:
                                      learn_gate_std=self.learn_gate_std, associate=hook)
         if self.learner.name == "offline":
             fit_offline_cached(model, train.states, ctx.dt, seed)
+        self._fit_motion(model, train, ctx, seed)
         if self.learner.name in ("online", "offline") and learner.learnable:
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
         res = learner.estimate(test)
@@ -331,6 +354,7 @@ def allowed_learners(model: MotionModel, observation: ObservationModel) -> tuple
     """The learners the distributed filter can use with these parts (the natural one first)."""
     bp = ("backprop",) if backprop_misfit(model, observation) is None else ()
     bp += ("calibrate",) if calibrate_misfit(observation, fit=("q",)) is None else ()
+    bp += ("fg_identification",) if FactorGraphIdentification.motion_misfit(model) is None else ()
     if model.learns_offline:
         return ("offline", *bp)
     if model.learnable or observation.learnable:

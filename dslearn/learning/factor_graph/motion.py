@@ -77,6 +77,19 @@ def fuse(meas: Tensor, visible: Tensor) -> tuple[Tensor, Tensor]:
     return z.permute(0, 2, 1, 3).reshape(b * a, t, 2), n.permute(0, 2, 1).reshape(b * a, t)
 
 
+def truth_tracks(states: Tensor, num_agents: int, noise_std: float = 0.0,
+                 generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    """The true positions of every agent of ``states (B, T, 4A)`` as one measurement per step: ``z (B*A, T, 2)`` and
+    ``n (B*A, T)`` (1; 0 where the truth is not finite), the layout of :func:`fuse`; ``noise_std > 0`` adds
+    ``N(0, noise_std^2)`` per coordinate drawn from ``generator`` (CPU, float64), the measurements' declared noise."""
+    b, t, _ = states.shape
+    pos = states.unflatten(-1, (int(num_agents), -1))[..., :2].permute(0, 2, 1, 3).reshape(b * int(num_agents), t, 2)
+    ok = torch.isfinite(pos).all(-1)
+    if noise_std > 0.0:
+        pos = pos + float(noise_std) * torch.randn(pos.shape, generator=generator, dtype=torch.float64).to(pos)
+    return torch.where(ok[..., None], pos, torch.zeros_like(pos)), ok.to(pos.dtype)
+
+
 @dataclass
 class KalmanPass:
     """One pass of the Kalman filter over ``G`` tracks.
