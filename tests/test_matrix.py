@@ -177,6 +177,12 @@ def _expected_fit(preset_cfg, scenario) -> bool:
     social forces; Liu's DGPT needs position measurements."""
     spec = scenario.spec
     engine = str(preset_cfg.filter._target_)
+    # unlabelled detections: only the distributed filter with an associator (GNN, JPDA); an associator of unlabelled
+    # detections is refused on a labelled scenario (the full matrix keeps each associator on its own column)
+    assoc = str(preset_cfg.get("associator", {}).get("_target_", "")).rsplit(".", 1)[-1]
+    if assoc in ("GNNAssociator", "JPDAAssociator") or not getattr(spec, "labelled", True):
+        return (not spec.labelled and assoc in ("GNNAssociator", "JPDAAssociator")
+                and engine.endswith("DistributedFilter") and spec.measurement == "position")
     if engine.endswith("DGPTMethod"):
         return spec.measurement == "position"
     if engine.endswith("FactorGraphMethod"):  # Jiang's identification + EKF-FG: squared-range sensors
@@ -206,6 +212,13 @@ def _expected_fit(preset_cfg, scenario) -> bool:
     else:
         ok = False
     return ok and (str(preset_cfg.model.name) != "sfm" or hasattr(scenario, "sfm"))
+
+
+def master_left_out(experiment) -> list:
+    """The experiment's ``task.left_out`` entries, as written in its file."""
+    import yaml
+
+    return yaml.safe_load((Path(CONF) / "experiment" / f"{experiment}.yaml").read_text())["task"].get("left_out", [])
 
 
 def _jobs(experiment, judge=True):
@@ -246,18 +259,25 @@ def test_experiment_matrix_small_jobs_are_exactly_the_fitting_cells():
     assert {"lin", "sfm", "gp_increment", "lstm"} <= models
     assert all(any(o["method"].startswith(e) for o in ov) for e in own)
     assert {o["scenario"] for o in ov} == {"yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "jiang", "braga", "corridor",
-                                           "eth_zara1"}  # every simulated scenario and a recorded one
+                                           "eth_zara1", "yu_crowd_clutter"}  # every simulated scenario, a recorded one
+    # the cells the small sweep leaves out for its budget (task.left_out), each with its reason
+    left = {(m, s) for e in master_left_out("matrix_small") for m in [e["method"]] for s in e["scenarios"]}
+    assert left == {("rbpf_em_lin", "liu_s1"), ("rbpf_em_lin", "liu_s2")}
     steps = {str(presets[o["method"]].filter.predict._target_).rsplit(".", 1)[-1] for o in ov
              if not o["method"].startswith(own)}
     assert steps == {"ExtendedPredict", "UnscentedPredict"}
     fit = [_expected_fit(presets[o["method"]], scen[o["scenario"]]) for o in ov]
-    assert kept == [c for c, f in zip(combos, fit) if f]  # every fitting cell a job, in the sweep's order
+    out = [(o["method"], o["scenario"]) in left for o in ov]
+    assert all(f for f, x in zip(fit, out) if x)  # a left-out cell is one that fits
+    assert kept == [c for c, f, x in zip(combos, fit, out) if f and not x]  # every fitting cell a job, in order
     assert len(records) == len(combos)
-    for r, f, c in zip(records, fit, combos):
+    for r, f, x, c in zip(records, fit, out, combos):
         assert r["overrides"] == " ".join(c)
-        assert (r["reason"] is None) == f and (r["job"] is not None) == f, r
+        assert (r["reason"] is None) == (f and not x) and (r["job"] is not None) == (f and not x), r
         if not f:  # the social force model on Liu's scenarios: no social forces simulated there
             assert r["reason"].startswith(f"{r['method']} does not fit scenario {r['scenario']}: "), r
+        elif x:
+            assert r["status"] == "left_out" and "minute per cell" in r["reason"], r
     assert [r["job"] for r in records if r["job"] is not None] == list(range(len(kept)))
     assert 0 < len(kept) < len(combos)
 

@@ -24,7 +24,8 @@ EXCEPTION_TEXT = re.compile(r"object has no attribute|Error|Traceback|must be|to
 #: squared_range``) or cannot give the method (``..., which scenario s1 does not have``)
 NAMES_WHAT = re.compile(r"needs (measurement|state|networked|kind) \S+; scenario \S+ has \S+|which scenario \S+ does "
                         r"not have|the sensors of scenario \S+ have none|on scenario \S+ every node navigates itself|scenario \S+ measures "
-                        r"\S+|does not fix a target's 2-D position")
+                        r"\S+|does not fix a target's 2-D position|scenario \S+ reports unlabelled detections|scenario \S+ gives every "
+                        r"measurement labelled")
 
 
 def _opt(combo, group):
@@ -76,7 +77,8 @@ def test_every_n_a_cell_of_the_matrix_says_why_from_the_spec():
                 specs[_opt(c, "scenario")] = _MetaSlots(composed(c))["scenario"].spec
             cfg = composed(c)
             engines[_opt(c, "method")] = (str(cfg.filter._target_), str(cfg.model.get("name")),
-                                          str(cfg.observation._target_), str(cfg.consensus.get("name")))
+                                          str(cfg.observation._target_), str(cfg.consensus.get("name")),
+                                          str(cfg.get("associator", {}).get("_target_", "")).rsplit(".", 1)[-1])
     assert len(records) == len(combos) and len(kept) == sum(r["status"] == "run" for r in records)
     assert not [r for r in records if r["status"] == "failed"], [r["error"] for r in records if r["error"]]
     na = [r for r in records if r["status"] == "does_not_fit"]
@@ -94,15 +96,23 @@ def test_every_n_a_cell_of_the_matrix_says_why_from_the_spec():
     # [p, v] agents on a network and model=sfm a scenario that simulates social forces; DGPT position sensors; the
     # factor graph squared ranges; the RBPF terrain altitudes on a network
     for r, c in zip(records, combos):
-        spec, (engine, model, obs, fusion) = specs[_opt(c, "scenario")], engines[_opt(c, "method")]
-        if engine.endswith("DGPTMethod"):
+        spec, (engine, model, obs, fusion, assoc) = specs[_opt(c, "scenario")], engines[_opt(c, "method")]
+        associates = assoc in ("GNNAssociator", "JPDAAssociator")
+        if associates or not spec.labelled:  # unlabelled detections: the distributed filter with an associator only
+            fits = associates and not spec.labelled and engine.endswith("DistributedFilter") and \
+                spec.measurement == "position"
+        elif engine.endswith("DGPTMethod"):
             fits = spec.measurement == "position"
         elif engine.endswith("FactorGraphMethod"):
             fits = spec.measurement == "squared_range"
         elif engine.endswith("RBPFMethod"):
             fits = spec.measurement == "terrain_altitude" and spec.networked
-        elif engine.endswith("RBPFModesMethod"):  # a Kalman filter of [p, v] per particle: position sensors
-            fits = spec.measurement == "position" and spec.state == "pv2d"
+        elif engine.endswith("FactorGraphMotionMethod"):  # the FG identification of a [p, v] model: position sensors
+            fits = spec.measurement == "position" and spec.state == "pv2d" and spec.kind == "targets"
+        elif engine.endswith("RBPFModesMethod"):  # a Kalman filter of [p, v] per particle: position sensors; an
+            # iterated EKF per particle at a fusion centre on the scenario's own nonlinear sensor (Jiang's)
+            fits = (spec.measurement == "position" and spec.state == "pv2d") or (
+                obs.endswith("scenario_sensor") and spec.measurement == "squared_range")
         elif spec.measurement == "position":
             fits = spec.state == "pv2d" and spec.networked and (model != "sfm" or spec.dynamics == "social_force")
         else:  # the scenario's own sensor (observation=sensor); consensus needs a graph of nodes sharing targets;

@@ -35,7 +35,7 @@ PART_KEYS = ("_target_", "_partial_", "name")
 PARTS = {"yu": ("scenario", "network", "model", "observation", "consensus", "filter"),
          "yu_faults": ("scenario", "observation", "filter"),
          "ethucy_tracking": ("filter", "observation", "model"),
-         "matrix": ("scenario", "network", "model", "observation", "consensus", "filter", "learner")}
+         "matrix": ("scenario", "network", "model", "observation", "consensus", "filter", "learner", "associator")}
 
 
 def unread_keys(cfg, group):
