@@ -108,3 +108,18 @@ def test_the_default_run_and_sweep_folders_the_docs_name_are_the_configs():
             path = "/".join(named).rstrip("/")
             expected = run if named[0] == "outputs" else sweep
             assert expected.startswith(path), (page.name, path, expected)
+
+
+def test_the_readme_says_how_many_tests_there_are():
+    """The README's "about N tests" is the suite's size within 5 % (collected here, none run)."""
+    import subprocess
+    import sys
+
+    said = re.search(r"about ([\d,]+) tests", TEXT)
+    assert said, "the README's Tests section says how many tests there are"
+    n = int(said.group(1).replace(",", ""))
+    out = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
+                          str(README.parent / "tests")], cwd=README.parent, capture_output=True, text=True,
+                         timeout=600).stdout
+    collected = int(re.search(r"(\d+) tests? collected", out).group(1))
+    assert abs(collected - n) <= 0.05 * collected, (n, collected)
