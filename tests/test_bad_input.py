@@ -142,7 +142,7 @@ OTHER_CASES = [
     (["task._target_=os.system"], "task._target_='os.system' is not a registered study"),
     (["task._target_=dslearn.studies.yu.check_offline"], "is not a registered study"),
     (["network.colr=3"], "network.colr: no such key in the configuration (known keys of network: ["),
-    (["model=nosuch"], "model='nosuch' is not an option of the config group 'model'; choose one of ['gp'"),
+    (["model=nosuch"], "model='nosuch' is not an option of the config group 'model'; choose one of ['cv_damped'"),
     (["experiment=nosuch"], "experiment='nosuch' is not an option of the config group 'experiment'"),
     (["nosuchkey=1"], "nosuchkey: no such key in the configuration"),
     (["model=[lin"], "model=[lin"),

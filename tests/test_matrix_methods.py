@@ -244,7 +244,8 @@ def test_fits_and_reasons():
     assert rb.fits(unnetworked).endswith("needs networked True; scenario b2 has False")
     for name in ("jiang", "braga"):  # DGPT's reasons (its fits need no parts); the distributed filter's engine
         want = f"needs measurement position; scenario {name} has {SPECS[name].measurement}"  # reads them (sensor)
-        assert DGPTMethod.fits(None, SPECS[name]).endswith(want)
+        why = DGPTMethod.fits(None, SPECS[name])
+        assert why.startswith("Liu's DGPT " + want + ": ") and "fixes no position" in why, why  # and why (intrinsic)
         assert DistributedFilter.spec_misfit(SPECS[name]) is None
 
 
