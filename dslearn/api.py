@@ -29,7 +29,7 @@ def compose(*overrides: str):
     import dslearn.schemas  # noqa: F401  (the task schemas the configs name)
     from dslearn.conf_paths import CONF_DIR
     from dslearn.search_path import add_search_path, search_overrides
-    from dslearn.run import parse_override
+    from dslearn.app.options import parse_override
     from dslearn.schemas.core import validate_config
 
     given = [parse_override(line) for line in overrides]
@@ -74,7 +74,7 @@ def run(*overrides: str, diagnostics=None):
     """Run any task as ``dslearn-run <overrides>`` would (one job, no output folder); its result table."""
     import inspect
 
-    from dslearn.run import resolve_entry
+    from dslearn.app.record import resolve_entry
 
     cfg = compose(*overrides)
     if "_target_" in cfg.task:

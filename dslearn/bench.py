@@ -117,7 +117,7 @@ def _compose(overrides):
     from hydra import compose, initialize_config_dir
 
     import dslearn.schemas  # noqa: F401  (registers the task schemas the configs name)
-    from dslearn.run import CONF_DIR
+    from dslearn.app.common import CONF_DIR
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
         return compose("config", overrides=list(overrides))

@@ -3,7 +3,7 @@ r"""Diagnostics as an object: numerical jitter, measurement gating, timings of o
 A :class:`Diagnostics` is a context (like ``gpytorch.settings``): while it is open, the numerical
 kernels record into it (``safe_cholesky`` the jitter it added, the online GP the diagonals it
 clamped, the filter's chi-square gate what it tested and rejected), through :func:`current`;
-nested contexts all receive the records. :func:`dslearn.run.execute` opens one around every
+nested contexts all receive the records. :func:`dslearn.app.record.execute` opens one around every
 study, hands it to the study's entry (``run(cfg, diagnostics=...)`` when the entry takes it) so
 the study adds its own timings and counts, and writes :meth:`Diagnostics.as_dict` into
 ``meta.json``. Nothing diffs a module-level counter. Outside any run the records go to

@@ -151,7 +151,7 @@ def check_complete(run_dir: str | Path) -> tuple[bool, str]:
     """Whether ``run_dir`` holds a complete result: ``(ok, reason)``.
 
     Complete = ``results.csv`` exists, parses, is non-empty, and matches the completeness marker
-    in ``meta.json`` (``rows`` and ``results_sha256``, written by :func:`dslearn.run.execute`
+    in ``meta.json`` (``rows`` and ``results_sha256``, written by :func:`dslearn.app.record.execute`
     *before* the results file, which is written last). A ``meta.json`` without the hash (older
     runs) is accepted when the file parses with the recorded row count.
     """

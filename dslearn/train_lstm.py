@@ -241,7 +241,7 @@ def precheck(argv: list[str]) -> tuple[str, str] | None:
     Hydra handles itself (``--help``, ``--cfg``, ...) skip the check."""
     from hydra import compose, initialize_config_dir
 
-    from dslearn.run import (
+    from dslearn.app.options import (
         _MULTIRUN_FLAGS,
         _NO_CHECK_FLAGS,
         _check_group_option,

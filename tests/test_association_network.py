@@ -182,7 +182,7 @@ def test_refusals_name_the_associator(make_cfg, tmp_path):
     """labels on unlabelled detections, an associator on a labelled scenario, an engine without an associator on
     unlabelled detections: refused before any work with the reason; a key the chosen associator does not read is
     refused at composition, naming it."""
-    from dslearn.run import precheck
+    from dslearn.app.precheck import precheck
     from dslearn.schemas.matrix import misfit
 
     why = misfit(make_cfg("task=matrix", "method=ekf_lin_hybrid", "scenario=yu_crowd_clutter"))

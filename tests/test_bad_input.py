@@ -221,9 +221,9 @@ def test_output_dir_and_launcher(tmp_path, monkeypatch):
     ):
         code, out, err = cli(argv)
         assert_refused(code, out, err, frag, tmp_path)
-    import dslearn.run as run
+    import dslearn.app.options as options
 
-    monkeypatch.setattr(run, "_plugin_installed", lambda module: False)  # as without the extra
+    monkeypatch.setattr(options, "_plugin_installed", lambda module: False)  # as without the extra
     code, out, err = cli(["-m", "hydra/launcher=joblib", "model=lin", f"hydra.sweep.dir={tmp_path / 's'}"])
     assert_refused(code, out, err, 'hydra/launcher=joblib needs the Hydra plugin hydra_joblib_launcher, which is not '
                                    'installed; install it with: pip install "dslearn[joblib]"', tmp_path)
@@ -348,7 +348,7 @@ def test_report_bad_inputs(tmp_path):
 
 
 def test_bad_entry_and_network(make_cfg):
-    from dslearn.run import resolve_entry
+    from dslearn.app.record import resolve_entry
     from dslearn import api
 
     with pytest.raises(ConfigError, match="task.entry='nomodule' is not a registered study"):

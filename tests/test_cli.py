@@ -12,7 +12,11 @@ from omegaconf import OmegaConf
 
 from dslearn import __version__
 from dslearn.progress import CostBar, episode_costs, evaluation_bar, gp_episode_cost, track, training_bar
-from dslearn.run import CONF_DIR, WarningLedger, check_jobs, help_text, main, sweep_combinations, version_text
+from dslearn.app.common import CONF_DIR
+from dslearn.app.composer import check_jobs, sweep_combinations
+from dslearn.app.help import help_text, version_text
+from dslearn.app.record import WarningLedger
+from dslearn.run import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -122,7 +126,7 @@ def test_warning_ledger_counts_jitter_and_shows_others_once():
 def test_meta_records_jitter(make_cfg, tmp_path):
     import json
 
-    from dslearn.run import execute
+    from dslearn.app.record import execute
 
     execute(make_cfg("model=lin", "data.train_episodes=0", "data.test_episodes=1"), tmp_path)
     meta = json.loads((tmp_path / "meta.json").read_text())
@@ -187,7 +191,7 @@ def test_bar_draws_percent_and_items():
 
 
 def test_log_lines_do_not_break_the_bar():
-    from dslearn.run import _progress_context
+    from dslearn.app.job import _progress_context
 
     root = logging.getLogger()
     h = logging.StreamHandler()  # a console handler like Hydra's

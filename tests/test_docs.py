@@ -91,8 +91,9 @@ def test_the_named_modules_have_api_pages():
 
 #: the app around the library: command-line entry points, reports, the config validation layer, progress output
 #: and developer tools; the how-to pages and the README document them by their commands and options
-APP = ("dslearn.run", "dslearn.bench", "dslearn.report", "dslearn.reports", "dslearn.schemas", "dslearn.progress",
-       "dslearn.callbacks", "dslearn.conf_paths", "dslearn.search_path", "dslearn.tools", "dslearn.train_lstm")
+APP = ("dslearn.run", "dslearn.app", "dslearn.bench", "dslearn.report", "dslearn.reports", "dslearn.schemas",
+       "dslearn.progress", "dslearn.callbacks", "dslearn.conf_paths", "dslearn.search_path", "dslearn.tools",
+       "dslearn.train_lstm")
 
 
 def test_every_library_module_has_an_api_page():

@@ -332,7 +332,7 @@ def _cli(argv):
 
 
 def test_cli_up_front_check_accepts_every_variant_and_rule(tmp_path):
-    from dslearn.run import precheck
+    from dslearn.app.precheck import precheck
 
     sweep = ["-m", "model=gp_rbcm,gp_increment_rbcm", "+model.variant=exact,window,sgpr,ssgp",
              "model.aggregation=poe,gpoe,bcm,rbcm", "data.train_episodes=1", "data.test_episodes=1",

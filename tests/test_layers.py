@@ -39,7 +39,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("compose", "search_path"),
     ("schemas/",),
     ("reports/", "callbacks", "reference"),
-    ("run", "report", "api", "bench", "train_lstm", "tools/"),
+    ("run", "app/", "report", "api", "bench", "train_lstm", "tools/"),
 ]
 
 #: modules up to this layer (inclusive) take plain values and built objects: they neither import nor

@@ -18,7 +18,7 @@ from dslearn.compose import build, build_study
 from dslearn.conf_paths import CONF_DIR
 from dslearn.errors import ConfigError
 from dslearn.learning import learners as L
-from dslearn.run import precheck
+from dslearn.app.precheck import precheck
 from dslearn.schemas.base import TASKS
 from test_task_groups import _cli  # dslearn-run in process: (exit code, stderr lines)
 

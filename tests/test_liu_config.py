@@ -219,7 +219,8 @@ def test_liu_grid_jobs_give_the_former_plans(tmp_path):
     cell traces itself unless it holds the task's trace cell (s1, sigma 4)."""
     from hydra import compose, initialize_config_dir
 
-    from dslearn.run import precheck, sweep_combinations
+    from dslearn.app.composer import sweep_combinations
+    from dslearn.app.precheck import precheck
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         combos, multirun, _ = sweep_combinations(["experiment=liu_grid"])

@@ -243,7 +243,7 @@ def test_too_many_recorded_episodes_are_refused_at_composition(monkeypatch):
     """The pools' sizes are in the scenario's spec once it is built (at composition): a count above them is
     refused by the up-front check, one line naming the key, the count and the pool, without drawing an episode;
     the pools' own sizes pass (no off-by-one)."""
-    from dslearn.run import precheck
+    from dslearn.app.precheck import precheck
 
     assert _corridor().spec.pools == (71, 28)
     for s in ("yu_two_agents", "liu_s1"):  # a simulator: any number

@@ -66,7 +66,7 @@ def test_seeds_must_be_at_least_one():
 
 
 def test_a_cell_without_a_method_is_refused_up_front():
-    from dslearn.run import precheck
+    from dslearn.app.precheck import precheck
 
     msg = precheck(["task=matrix", "scenario=liu_s1"])
     assert msg is not None and msg.startswith("task=matrix needs method=<preset>")

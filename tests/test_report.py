@@ -127,7 +127,7 @@ def test_yu_tables_label_the_average(tmp_path):
 
 
 def test_report_of_a_single_run_dir(make_cfg, tmp_path):
-    from dslearn.run import execute
+    from dslearn.app.record import execute
 
     execute(make_cfg("model=lin", "data.train_episodes=0", "data.test_episodes=2", "study=unit"), tmp_path / "r")
     assert json.loads((tmp_path / "r" / "meta.json").read_text())["artifacts"] == ["tracks.npz"]

@@ -111,7 +111,7 @@ def _hydra_completion():
     from hydra._internal.core_plugins.bash_completion import BashCompletion
     from hydra._internal.utils import create_config_search_path
 
-    from dslearn.run import CONF_DIR
+    from dslearn.app.common import CONF_DIR
 
     bc = BashCompletion(ConfigLoaderImpl(config_search_path=create_config_search_path(CONF_DIR)))
     return lambda line: bc._query(config_name="config", line=bc.strip_python_or_app_name(line))
@@ -126,7 +126,7 @@ HEAVY_LINES = ["dslearn-run data.", "dslearn-run data.tr", "dslearn-run seed=", 
 
 
 def test_light_completion_answers_as_hydra_does():
-    from dslearn.run import light_completion
+    from dslearn.app.help import light_completion
 
     hydra_answer = _hydra_completion()
     for line in LIGHT:
@@ -147,7 +147,7 @@ def test_completion_request_imports_no_heavy_module():
 
 
 def test_did_you_mean():
-    from dslearn.run import did_you_mean
+    from dslearn.app.options import did_you_mean
 
     assert did_you_mean("gp_incremnt", options("model"))[0] == "gp_increment"
     assert did_you_mean("hybird", options("consensus"))[0] == "hybrid"
@@ -157,7 +157,7 @@ def test_did_you_mean():
 
 def test_suggested_key_fix_works(capsys):
     """The suggested fix of a misspelt key is itself accepted (every suggested fix must work)."""
-    from dslearn.run import precheck
+    from dslearn.app.precheck import precheck
 
     err = precheck(["sed=3"])
     assert err.startswith("sed: no such key in the configuration") and err.endswith("; did you mean seed=...?"), err

@@ -11,7 +11,7 @@ import pytest
 
 from dslearn.errors import ConfigError
 from dslearn.report import summarize
-from dslearn.run import execute
+from dslearn.app.record import execute
 from dslearn import api
 from dslearn.studies.yu import YuStudy
 

@@ -15,7 +15,7 @@ import pytest
 
 from dslearn.callbacks import gather_sweep, parse_overrides
 from dslearn.io import check_complete, load_results
-from dslearn.run import execute
+from dslearn.app.record import execute
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["data.train_episodes=0", "data.test_episodes=2"]

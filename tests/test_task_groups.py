@@ -3,8 +3,8 @@
 The expected table below is written from the studies (what each ``run`` reads of ``cfg``), not from
 the declarations in :mod:`dslearn.schemas`: a declaration that claims a group the study does not read,
 or misses one it reads, fails here. The override is found on the command line / in the sweep (the
-start-up check, :func:`dslearn.run.precheck`), never by comparing values: selecting a group's default
-option for a task that does not read it is refused too.
+start-up check, :func:`dslearn.app.precheck.precheck`), never by comparing values: selecting a group's
+default option for a task that does not read it is refused too.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ import os
 
 import pytest
 
-from dslearn.run import main, precheck
+from dslearn.app.precheck import precheck
+from dslearn.run import main
 from dslearn.schemas.base import ROOT_GROUPS, TASKS, task_uses
 
 #: the context that selects each task (its experiment where it has one)

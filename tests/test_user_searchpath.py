@@ -104,7 +104,7 @@ def test_the_option_listings_and_compositions_include_the_users_folder(tmp_path,
     from dslearn import api
     from dslearn.compose import group_options
     from dslearn.errors import ConfigError
-    from dslearn.run import precheck
+    from dslearn.app.precheck import precheck
     from dslearn.schemas.matrix import left_out
 
     folder = _user_folder(tmp_path)
