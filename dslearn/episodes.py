@@ -71,7 +71,8 @@ class Episodes:
 #: kinds of measurement a scenario yields (what a method's observation side must handle)
 MEASUREMENTS = ("position", "squared_range", "terrain_altitude")
 #: kinds of scenario: targets seen by a network of sensors; nodes navigating themselves (one platform per node)
-KINDS = ("targets", "self")
+TARGETS, SELF = "targets", "self"
+KINDS = (TARGETS, SELF)
 
 
 @dataclass(frozen=True)
@@ -114,8 +115,18 @@ class ScenarioSpec:
     source: str = "simulated"
     pools: tuple[int, int] | None = None
     dynamics: str | None = None
-    kind: str = "targets"
+    kind: str = TARGETS
     labelled: bool = True
+
+    @property
+    def tracks_targets(self) -> bool:
+        """The network's sensors see targets (``kind = "targets"``)."""
+        return self.kind == TARGETS
+
+    @property
+    def navigates_itself(self) -> bool:
+        """Every node navigates itself (``kind = "self"``): node ``s`` measures only its own platform ``s``."""
+        return self.kind == SELF
 
 
 @dataclass

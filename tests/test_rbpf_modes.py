@@ -275,7 +275,14 @@ def test_declared_fits_and_refusals():
     with pytest.raises(ConfigError, match="observation=GPObservation is not a sensor model .*observation=sensor"):
         RBPFModesMethod(fusion, observation=GPObservation(2))
     with pytest.raises(ConfigError, match="filter.ekf_iterations=0 must be an integer >= 1"):
-        RBPFModesMethod(fusion, ekf_iterations=0)
+        RBPFModesMethod(fusion, observation=sq, ekf_iterations=0)
+    # the count is the iterated EKF's: read with a nonlinear sensor (None: 5), refused with the linear position sensor
+    assert RBPFModesMethod(fusion, observation=sq).iterations == 5
+    assert RBPFModesMethod(fusion, observation=sq, ekf_iterations=2).iterations == 2
+    for obs in (None, LinearPositionObservation(0.2)):
+        with pytest.raises(ConfigError, match="filter.ekf_iterations=3: the linear position sensor's Kalman update is "
+                                              "exact and reads no linearisation count; drop the key"):
+            RBPFModesMethod(fusion, observation=obs, ekf_iterations=3)
     m = RBPFModesMethod(fusion)
     assert isinstance(m.learner, OnlineEMSensor) and m.label == "rbpf_em_lin centralised"
     assert m.learner == build(_compose("learner=online_em_sensor").learner, "learner")  # the defaults are the option's

@@ -314,9 +314,12 @@ class MomentMatchingPredict:
 
     :meth:`model_misfit` says why a motion model does not fit (the matrix's n/a reason), :meth:`check_model`
     raises it as a :class:`~dslearn.errors.ConfigError` (the start-up check); a call with such a model raises it too.
+    A :class:`~dslearn.filters.information.PredictionStep`.
     """
 
     name: ClassVar[str] = "adf"
+    noise_at_mean: ClassVar[bool] = False
+    differentiates_gp: ClassVar[bool] = False
 
     def model_misfit(self, model: MotionModel, model_name: str | None = None) -> str | None:
         return adf_misfit(model, model_name)

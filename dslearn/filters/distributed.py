@@ -10,7 +10,7 @@ from torch import Tensor
 
 from dslearn.episodes import Measurements
 from dslearn.fusion.strategies import Fusion
-from dslearn.filters.information import novel_information, predict
+from dslearn.filters.information import PredictionStep, novel_information, predict
 from dslearn.filters.smoother import transition_error_moments
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.network import SensorNetwork
@@ -246,7 +246,7 @@ def track(
     learn: bool = False,
     learn_gate_std: float | None = None,
     gate_prob: float | None = None,
-    predict_step=None,
+    predict_step: PredictionStep | None = None,
     associate=None,
 ) -> TrackResult:
     r"""Run the distributed EKF over a batch of episodes (Algorithm 1).
@@ -263,7 +263,8 @@ def track(
             has position standard deviation <= this for every target; ``None`` appends always
             (the paper as written). Without the gate, a node that never saw a target appends
             (vague prior -> fused estimate) pairs that corrupt its GP wherever the vague prior sits.
-        predict_step: the filter's prediction step (``filter.predict``: EKF linearisation, the
+        predict_step: the filter's prediction step (``filter.predict``, a
+            :class:`~dslearn.filters.information.PredictionStep`: EKF linearisation, the
             default, or :class:`~dslearn.filters.ukf.UnscentedPredict`), called like
             :func:`~dslearn.filters.information.predict`. The unscented one also linearises a nonlinear
             sensor statistically (its ``observation_linearization``: the UKF's update); with a linear or

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -52,12 +53,43 @@ def predict(
     return y_pred, q_pred, omega_pred
 
 
+class PredictionStep(Protocol):
+    """The filter's prediction step (``filter.predict``), as the filters and the learners take it: called like
+    :func:`predict`, ``(mean, omega, model, ctx, full=False) -> (y_pred, q_pred, omega_pred[, P_pred, F, Q])``.
+    The steps: :class:`ExtendedPredict` (``ekf``), :class:`~dslearn.filters.ukf.UnscentedPredict` (``ukf``,
+    ``ukf_mm``), :class:`~dslearn.filters.particle.ParticlePredict` (``pf``),
+    :class:`~dslearn.filters.adf.MomentMatchingPredict` (``adf``).
+
+    A step may further declare ``model_misfit(model, model_name)`` (why it does not fit a motion model; with
+    ``check_model`` and ``check_state_dim``, the start-up checks) and ``observation_linearization(obs, y_pred,
+    omega_pred, num_agents)`` (its own update for a nonlinear sensor: the UKF's)."""
+
+    #: its label (``filter=...`` in messages and rows)
+    name: str
+    #: its process noise is the motion model's ``Q`` at the mean (a scale of it scales the step's; the EKF's and
+    #: the UKF's, not a moment-matching or sampling step's)
+    noise_at_mean: bool
+    #: autograd follows an exact GP motion model's differentiable posterior through it (``learner=backprop``; not
+    #: a step that reads the GP's own factor: the GP-ADF, the GP-UKF-MM)
+    differentiates_gp: bool
+
+    def __call__(self, mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext,
+                 full: bool = False) -> tuple[Tensor, ...]: ...
+
+
+def prediction_step(step: PredictionStep | None) -> PredictionStep:
+    """``step``, or the EKF's (:class:`ExtendedPredict`) where none is given."""
+    return ExtendedPredict() if step is None else step
+
+
 @dataclasses.dataclass(frozen=True)
 class ExtendedPredict:
     """The EKF prediction step as a config part (``conf/filter/default.yaml``: ``predict``):
-    :func:`predict`, the model linearised at the mean."""
+    :func:`predict`, the model linearised at the mean (a :class:`PredictionStep`)."""
 
     name = "ekf"
+    noise_at_mean = True
+    differentiates_gp = True
 
     def __call__(self, mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext, full: bool = False):
         return predict(mean, omega, model, ctx, full=full)

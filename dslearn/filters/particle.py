@@ -208,10 +208,12 @@ class ParticlePredict:
     Holds ``particles`` (``filter.predict.particles``, an integer >= 2) and ``seed`` (``filter.predict.seed``,
     an integer >= 0; ConfigError naming the key otherwise) and one :class:`torch.Generator` per device, seeded
     from ``seed`` on the first call on that device and advanced by every call. Any motion model fits (no
-    ``model_misfit``). Its :attr:`name` is ``pf``.
+    ``model_misfit``). Its :attr:`name` is ``pf`` (a :class:`~dslearn.filters.information.PredictionStep`).
     """
 
     name = "pf"
+    noise_at_mean = False
+    differentiates_gp = True
 
     def __init__(self, particles: int = 500, seed: int = 0):
         self.particles = check_particles(particles)

@@ -275,7 +275,8 @@ class UnscentedPredict:
     whose state dimension ``Dx`` has ``Dx + kappa <= 0``, before any model call. With
     ``expected_variance`` a motion model without a state-dependent process noise is refused
     (:meth:`model_misfit` / :meth:`check_model`: the start-up check, the matrix's n/a reason, the first call).
-    Its :attr:`name` is ``ukf``, or ``ukf_mm`` with ``expected_variance``.
+    Its :attr:`name` is ``ukf``, or ``ukf_mm`` with ``expected_variance`` (a
+    :class:`~dslearn.filters.information.PredictionStep`).
     """
 
     alpha: float = 1.0
@@ -291,6 +292,16 @@ class UnscentedPredict:
     @property
     def name(self) -> str:
         return "ukf_mm" if self.expected_variance else "ukf"
+
+    @property
+    def noise_at_mean(self) -> bool:
+        """The UKF's process noise is the model's at the mean; with ``expected_variance`` its expectation."""
+        return not self.expected_variance
+
+    @property
+    def differentiates_gp(self) -> bool:
+        """With ``expected_variance`` it reads the GP's own predictive variance, not the differentiable posterior."""
+        return not self.expected_variance
 
     def check_state_dim(self, state_dim: int) -> None:
         """ConfigError unless the parameters suit a state of ``state_dim`` (the start-up check's hook)."""

@@ -130,7 +130,7 @@ class FaultyFusion:
         # the first call after begin() is the initial belief's fusion (t = 0), then t = 1, 2, ...
         tt = self.t
         self.t += 1
-        if self.base.name in ("individual", "centralized"):
+        if not self.base.mixes:  # no consensus rounds: no links to fail
             return self.base(q_pred, o_pred, dq, do)
         if self.alive is None:
             raise RuntimeError("FaultyFusion.begin(alive) must be called before tracking")

@@ -47,18 +47,21 @@ class Fusion:
     uses_links = True
     #: whether a node fuses only its own readings (no fusion with any other node)
     alone = False
+    #: whether it runs consensus rounds: mixes the nodes' information with ``W^L`` (its weights and ``iterations``
+    #: act); ``False``: each node alone or a fusion centre (no rounds, no weights)
+    mixes = True
 
     @classmethod
     def spec_misfit(cls, spec) -> str | None:
         """What the fusion needs of a scenario, declared (:func:`dslearn.methods.base.declared_misfit`): a strategy that
         sends information over the network's links needs a communication graph between the nodes, and nodes that
-        share something to agree on (not nodes navigating themselves, ``spec.kind == "self"``)."""
+        share something to agree on (not nodes navigating themselves, ``spec.navigates_itself``)."""
         if not cls.uses_links:
             return None
         if not spec.networked:
             return (f"consensus={cls.name} exchanges information with neighbours over a communication graph; the "
                     f"sensors of scenario {spec.name} have none (they report to a fusion centre: consensus=centralized)")
-        if spec.kind == "self":
+        if spec.navigates_itself:
             return (f"consensus={cls.name} makes the nodes agree on the targets they all track; on scenario {spec.name} "
                     f"every node navigates itself (no node measures another's platform), so each platform's "
                     f"information has one source and consensus rounds only mix it with the neighbours' predictions "
@@ -80,6 +83,11 @@ class Fusion:
             self.omega = float(omega)
         self.omega_label = str(omega)
         self.wl = torch.linalg.matrix_power(weights, self.iterations)
+
+    @property
+    def rounds(self) -> int:
+        """The consensus rounds it runs: ``iterations`` where it :attr:`mixes`, else 0."""
+        return self.iterations if self.mixes else 0
 
     @classmethod
     def for_network(cls, *, adjacency: Tensor, weights: str = "uniform", iterations: int = 4,
@@ -108,6 +116,7 @@ class Individual(Fusion):
     config_unread = "each node alone: no consensus rounds"
     uses_links = False
     alone = True
+    mixes = False
 
     def __call__(self, q_pred, o_pred, dq, do, wl=None):
         return q_pred + dq, symmetrize(o_pred + do)
@@ -123,6 +132,7 @@ class Centralized(Fusion):
     config_reads = ()
     config_unread = "a fusion centre: no consensus rounds"
     uses_links = False
+    mixes = False
 
     def __call__(self, q_pred, o_pred, dq, do, wl=None):
         return q_pred + dq.sum(0, keepdim=True), symmetrize(o_pred + do.sum(0, keepdim=True))

@@ -52,8 +52,10 @@ from torch import Tensor, nn
 from dslearn.episodes import Episodes, Measurements
 from dslearn.errors import ConfigError, check_choice
 from dslearn.filters.distributed import TrackResult, track
+from dslearn.filters.information import PredictionStep, prediction_step
 from dslearn.filters.information import predict as ekf_predict
 from dslearn.fusion.strategies import Fusion, make_fusion
+from dslearn.learning import Learner
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.types import AGENT_DIM, POS, StepContext, agents, safe_cholesky
 
@@ -66,9 +68,10 @@ TRAIN_FUSIONS = ("consensus", "individual")
 #: the motion models (``conf/model`` options) whose parameters this learner can learn
 SUPPORTED_MODELS = ("lin", "sfm", "gp", "gp_increment", "gp_adaptive", "gp_cv", "gp_window", "lstm", "social_lstm")
 #: the prediction steps it can differentiate with a GP motion model (the GP-ADF and GP-UKF-MM read the
-#: GP's own factor, not the differentiable posterior)
+#: GP's own factor, not the differentiable posterior: :attr:`PredictionStep.differentiates_gp`), as named in messages
 GP_STEPS = ("ekf", "ukf", "pf")
-#: fusions with consensus weights (``weights``) and with a novel-information weight (``omega``)
+#: fusions with consensus weights (``weights``: those that run consensus rounds, :attr:`Fusion.mixes`) and with a
+#: novel-information weight (``omega``: :attr:`Fusion.uses_omega`), as named in messages
 WEIGHTED_FUSIONS = ("ce", "cm", "ci", "hybrid")
 OMEGA_FUSIONS = ("cm", "hybrid")
 
@@ -299,6 +302,18 @@ class MotionParameters(nn.Module, abc.ABC):
     kind: ClassVar[str]
     #: whether ``learn: [q]`` applies (False: the model's noise is its own, e.g. a GP's predictive variance)
     takes_q: ClassVar[bool] = True
+    #: whether its ``Q`` is always ``q``'s (learned or not; the linear model has no noise of its own)
+    always_q: ClassVar[bool] = False
+
+    @classmethod
+    def of(cls, model: MotionModel, num_agents: int, dt: float) -> "MotionParameters":
+        """The numbers of ``model`` (``A = num_agents`` targets, ``dt`` seconds per step)."""
+        return cls(model)
+
+    @classmethod
+    def misfit(cls, model: MotionModel, predict: PredictionStep) -> str | None:
+        """Why they cannot be learned for ``model`` under the prediction step ``predict`` (``None``: they can)."""
+        return None
 
     @abc.abstractmethod
     def build(self, q_block: Tensor | None) -> MotionModel:
@@ -317,6 +332,11 @@ class LinearParameters(MotionParameters):
     """``model=lin``: the agent block ``F_a`` of the transition matrix (its ``Q`` is always ``q``'s)."""
 
     kind = "lin"
+    always_q = True
+
+    @classmethod
+    def of(cls, model: MotionModel, num_agents: int, dt: float) -> "LinearParameters":
+        return cls(num_agents, model.matrix(dt)[:AGENT_DIM, :AGENT_DIM])
 
     def __init__(self, num_agents: int, f_block: Tensor):
         super().__init__()
@@ -371,6 +391,13 @@ class GPParameters(MotionParameters):
 
     kind = "gp"
     takes_q = False
+
+    @classmethod
+    def misfit(cls, model: MotionModel, predict: PredictionStep) -> str | None:
+        """Only under a prediction step that differentiates the GP's posterior."""
+        if not predict.differentiates_gp:
+            return f"a GP under filter={predict.name} (the GP's steps: {'|'.join(GP_STEPS)})"
+        return None
 
     def __init__(self, model):
         super().__init__()
@@ -432,51 +459,40 @@ class LSTMParameters(MotionParameters):
         return {"lstm_weights": int(sum(p.numel() for p in self.lstm.parameters()))}
 
 
-def motion_misfit(model: MotionModel, predict_name: str = "ekf") -> str | None:
-    """Why ``learner=backprop`` cannot learn ``model``'s parameters (``None`` where it can)."""
-    from dslearn.learning.sfm_fit import FittedSocialForce
-    from dslearn.models.constant_velocity import ConstantVelocity
-    from dslearn.models.gp import GPMotionModel
-    from dslearn.models.gp_backends.exact import OnlineGP
-    from dslearn.models.lstm import SocialLSTM
-    from dslearn.models.social_force import SocialForce
+#: the numbers a motion model may declare trainable (:attr:`~dslearn.models.base.MotionModel.gradient_parameters`)
+MOTION_PARAMETERS = {c.kind: c for c in (LinearParameters, SocialForceParameters, GPParameters, LSTMParameters)}
 
-    if isinstance(model, (ConstantVelocity, SocialLSTM)):
-        return None
-    if isinstance(model, SocialForce):
-        return ("the fitted social force sets its desired velocities per episode and fits offline (model=sfm "
-                "learns the social force's numbers)" if isinstance(model, FittedSocialForce) else None)
-    if isinstance(model, GPMotionModel):
-        if not isinstance(model.gp, OnlineGP):
-            return f"a GP with model.variant={model.variant} (only the exact GPs: model.variant=exact|window)"
-        if model.inputs != "mean":
-            return "a GP with model.inputs=belief (choose model.inputs=mean)"
-        if predict_name not in GP_STEPS:
-            return f"a GP under filter={predict_name} (the GP's steps: {'|'.join(GP_STEPS)})"
-        return None
-    return f"{type(model).__name__} has no differentiable parameters here"
+
+def declared_parameters(model: MotionModel) -> type[MotionParameters] | None:
+    """The :class:`MotionParameters` class of the numbers ``model`` declares trainable (``None``: none)."""
+    kind = model.gradient_parameters
+    return None if kind is None else MOTION_PARAMETERS[kind]
+
+
+def motion_misfit(model: MotionModel, predict: PredictionStep | None = None) -> str | None:
+    """Why ``learner=backprop`` cannot learn ``model``'s parameters under the prediction step ``predict`` (``None``:
+    the EKF's), ``None`` where it can: the numbers the model declares trainable
+    (:attr:`~dslearn.models.base.MotionModel.gradient_parameters`), what it says against it
+    (:meth:`~dslearn.models.base.MotionModel.gradient_misfit`), what those numbers need of the step."""
+    params = declared_parameters(model)
+    if params is None:
+        return f"{type(model).__name__} has no differentiable parameters here"
+    return model.gradient_misfit() or params.misfit(model, prediction_step(predict))
 
 
 def takes_q(model: MotionModel) -> bool:
-    """Whether ``learn: [q]`` applies to ``model`` (:attr:`MotionParameters.takes_q`: not for a GP)."""
-    from dslearn.models.gp import GPMotionModel
-
-    return not isinstance(model, GPMotionModel)
+    """Whether ``learn: [q]`` applies to ``model`` (:attr:`MotionParameters.takes_q` of the numbers it declares
+    trainable: not for a GP)."""
+    params = declared_parameters(model)
+    return params is None or params.takes_q
 
 
 def motion_parameters(model: MotionModel, num_agents: int, dt: float) -> MotionParameters:
-    """The :class:`MotionParameters` of ``model`` (:func:`motion_misfit` first)."""
-    from dslearn.models.constant_velocity import ConstantVelocity
-    from dslearn.models.gp import GPMotionModel
-    from dslearn.models.lstm import SocialLSTM
-
-    if isinstance(model, ConstantVelocity):
-        return LinearParameters(num_agents, model.matrix(dt)[:AGENT_DIM, :AGENT_DIM])
-    if isinstance(model, GPMotionModel):
-        return GPParameters(model)
-    if isinstance(model, SocialLSTM):
-        return LSTMParameters(model)
-    return SocialForceParameters(model)
+    """The :class:`MotionParameters` of ``model`` (:func:`motion_misfit` first): the numbers it declares trainable."""
+    params = declared_parameters(model)
+    if params is None:
+        raise ConfigError(motion_misfit(model))
+    return params.of(model, num_agents, dt)
 
 
 class BackpropParameters(nn.Module):
@@ -527,7 +543,7 @@ class BackpropParameters(nn.Module):
     def _q_block(self) -> Tensor | None:
         """The agent block of ``Q`` a pass uses: ``q``'s (always for ``lin``, else where ``q`` is learned) or
         ``None`` (the model's own noise)."""
-        return self.Q() if self.motion_params.kind == "lin" or "q" in self.learn else None
+        return self.Q() if self.motion_params.always_q or "q" in self.learn else None
 
     # the numbers
     def Q(self) -> Tensor:
@@ -552,7 +568,7 @@ class BackpropParameters(nn.Module):
     def fusion(self) -> Fusion:
         """The configured fusion strategy (same class, same ``L``) with ``W^L`` and omega from the parameters."""
         f = copy.copy(self.base_fusion)
-        if f.name in WEIGHTED_FUSIONS:
+        if f.mixes:  # consensus weights
             w = self.W()
             f.weights, f.wl = w, torch.linalg.matrix_power(w, f.iterations)
         if f.uses_omega:
@@ -720,7 +736,7 @@ def fit(params: BackpropParameters, train: Episodes | Measurements, network, ctx
 
 # ---------------------------------------------------------------------------------------------- the learner
 @dataclass
-class BackpropLearning:
+class BackpropLearning(Learner):
     """Learn the distributed filter's numbers by backpropagating through the information filter and the ``L``
     consensus rounds on the training episodes, then track with them (``conf/learner/backprop.yaml``).
 
@@ -739,6 +755,7 @@ class BackpropLearning:
     """
 
     name: ClassVar[str] = "backprop"
+    learns_through_update = True
     #: the motion model still gathers its data online first (a GP, Algorithm 1;
     #: :func:`dslearn.schemas.base.online_learning`)
     config_online_parts: ClassVar[tuple] = ("model",)
@@ -789,7 +806,7 @@ class BackpropLearning:
 
     def check_fusion(self, fusion: Fusion) -> None:
         """ConfigError where ``learn`` asks for what the fusion does not have."""
-        if "weights" in self.learn and fusion.name not in WEIGHTED_FUSIONS:
+        if "weights" in self.learn and not fusion.mixes:
             raise ConfigError(f"learner.learn=[weights] needs consensus weights (consensus="
                               f"{'|'.join(WEIGHTED_FUSIONS)}), not consensus={fusion.name}")
         if "omega" in self.learn and not fusion.uses_omega:

@@ -64,7 +64,9 @@ from dslearn.episodes import Measurements
 from dslearn.errors import ConfigError
 from dslearn.filters.information import novel_information
 from dslearn.filters.information import predict as ekf_predict
+from dslearn.filters.information import prediction_step
 from dslearn.fusion.strategies import make_fusion
+from dslearn.learning import Learner
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.types import AGENT_DIM, StepContext, agents, safe_cholesky
 
@@ -72,8 +74,8 @@ _LOG = logging.getLogger(__name__)
 
 #: what ``learner.fit`` may list: a scale of the process noise Q, a scale of the sensors' R
 PARTS = ("q", "r")
-#: the prediction steps it runs (by their ``name``): the EKF's and the UKF's, whose Q is the model's at the mean
-STEPS = ("ekf", "ukf")
+#: the prediction steps it runs are those whose Q is the model's at the mean (the EKF's and the UKF's:
+#: :attr:`~dslearn.filters.information.PredictionStep.noise_at_mean`)
 
 
 # -------------------------------------------------------------------------------------------- scaled parts
@@ -433,7 +435,7 @@ def calibrate(model: MotionModel, obs: ObservationModel, ep: Measurements, init:
 
 # ---------------------------------------------------------------------------------------------- the learner
 @dataclass
-class CalibrateLearning:
+class CalibrateLearning(Learner):
     """Fit a scale of the process noise and/or of the sensors' noise to the scenario's training measurements
     (maximum likelihood of the nodes' innovations, each node alone), then track with the configured fusion
     (``conf/learner/calibrate.yaml``; the estimator: :func:`calibrate`).
@@ -456,6 +458,7 @@ class CalibrateLearning:
     """
 
     name: ClassVar[str] = "calibrate"
+    learns_through_update = True
 
     fit: Any = field(default_factory=lambda: list(PARTS))
     points: int = 9
@@ -508,10 +511,10 @@ def calibrate_misfit(observation: ObservationModel, predict=None, fit=PARTS) -> 
     prediction step (whose Q is the model's at the mean) and, to fit ``r``, the linear position sensor."""
     from dslearn.models.observation import LinearPositionObservation
 
-    step = getattr(predict, "name", "ekf")
-    if step not in STEPS:
+    step = prediction_step(predict)
+    if not step.noise_at_mean:
         return (f"it scales the process noise that the EKF or UKF prediction step takes at the mean (filter=default|"
-                f"ukf), not filter={step}'s")
+                f"ukf), not filter={step.name}'s")
     if "r" in fit and not isinstance(observation, LinearPositionObservation):
         return (f"learner.fit=[r] scales the linear position sensor's R (observation=linear), not observation "
                 f"{type(observation).__name__}; fit only q (learner.fit=[q])")

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.learning import Learner
 
 
 class LearnerRefused(ConfigError):
@@ -51,25 +52,29 @@ def learner_name(learner: Any) -> str:
 
 
 @dataclass(frozen=True)
-class OnlineLearning:
+class OnlineLearning(Learner):
     """Yu et al. Algorithm 1: the parts that learn online learn while tracking the training episodes."""
 
     name: ClassVar[str] = "online"
+    learns_online = True
     #: the parts it lets learn online while tracking (:func:`dslearn.schemas.base.online_learning`)
     config_online_parts: ClassVar[tuple] = ("model", "observation")
 
 
 @dataclass(frozen=True)
-class OfflineLearning:
-    """The motion model fitted once to the training episodes' true tracks (``fit_offline``), then frozen."""
+class OfflineLearning(Learner):
+    """The motion model fitted once to the training episodes' true tracks (``fit_offline``), then frozen (an
+    observation model that learns online still does, as with ``online``)."""
 
     name: ClassVar[str] = "offline"
+    fits_offline = True
+    learns_online = True
     #: the parts it lets learn online while tracking (:func:`dslearn.schemas.base.online_learning`)
     config_online_parts: ClassVar[tuple] = ("observation",)
 
 
 @dataclass(frozen=True)
-class NoLearning:
+class NoLearning(Learner):
     """Nothing is learned: the parts as configured."""
 
     name: ClassVar[str] = "none"
@@ -120,7 +125,7 @@ MODE_SENSOR_DEFAULTS = {"mu_init": [0.0, 0.0], "sigma_init": [1.0, 3.0], "pi_ini
 
 
 @dataclass
-class OnlineEM:
+class OnlineEM(Learner):
     """Braga et al.'s online EM of the jump-Markov altimeter noise, afresh within each flight.
 
     Args:
@@ -232,7 +237,7 @@ def hyper_config(hyper: Any, prefix: str = "learner.hyper") -> Any:
 
 
 @dataclass
-class OnlineHyperparameters:
+class OnlineHyperparameters(Learner):
     """Liu et al.'s online learning of the GP experts' shared hyperparameters (factorised likelihood), within
     each episode.
 
@@ -308,7 +313,7 @@ TRUTH_STD = 1e-2
 
 
 @dataclass
-class FactorGraphIdentification:
+class FactorGraphIdentification(Learner):
     """Jiang et al.'s identification of the source's parameter over the factor graph (Gaussian BP from the
     sensors' compressed samples) at every timing.
 

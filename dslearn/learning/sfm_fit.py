@@ -135,6 +135,11 @@ class FittedSocialForce(SocialForce):
     #: fitted to any scenario's tracks: it needs nothing of the simulation (unlike model=sfm)
     spec_misfit = staticmethod(MotionModel.spec_misfit)
 
+    def gradient_misfit(self) -> str | None:
+        """A gradient learner leaves it alone: its desired velocities are set per episode and it fits offline."""
+        return ("the fitted social force sets its desired velocities per episode and fits offline (model=sfm "
+                "learns the social force's numbers)")
+
     @classmethod
     def for_scenario(
         cls,

@@ -85,7 +85,8 @@ class RBPFModesMethod:
         prior_pos_std, prior_vel_std: the diffuse prior of a target not yet seen [m], [m/s].
         ekf_iterations: a nonlinear sensor's linearisations per update of a particle's filter (the iterated extended
             Kalman update, :func:`dslearn.filters.mkf.iekf_mode_updates`; 1: the extended update at the prediction);
-            the linear position sensor's Kalman update is exact and does not read it.
+            ``None``: 5. The linear position sensor's Kalman update is exact and reads no count: a value given with
+            it is refused.
         fusion_name: the fusion part's label.
         learner: the online EM for position sensors (:class:`~dslearn.learning.learners.OnlineEMSensor`); ``None``:
             its defaults (``conf/learner/online_em_sensor.yaml``).
@@ -104,7 +105,7 @@ class RBPFModesMethod:
     ess_threshold: float = 0.5
     prior_pos_std: float = 1000.0
     prior_vel_std: float = 1000.0
-    ekf_iterations: int = 5
+    ekf_iterations: int | None = None
     fusion_name: str | None = None
     learner: Any = None
     observation: Any = None
@@ -130,8 +131,12 @@ class RBPFModesMethod:
         self.prior_pos_std = _num("prior_pos_std", self.prior_pos_std, 0.0, True)
         self.prior_vel_std = _num("prior_vel_std", self.prior_vel_std, 0.0, True)
         it = self.ekf_iterations
-        if isinstance(it, bool) or not isinstance(it, int) or it < 1:
+        if it is not None and (isinstance(it, bool) or not isinstance(it, int) or it < 1):
             raise ConfigError(f"filter.ekf_iterations={it!r} must be an integer >= 1 (1: the extended Kalman update)")
+        if it is not None and not self.centre:
+            raise ConfigError(f"filter.ekf_iterations={it!r}: the linear position sensor's Kalman update is exact and "
+                              f"reads no linearisation count; drop the key (it is read with a nonlinear sensor of one "
+                              f"reading per step: observation=sensor on squared ranges, ranges or bearings)")
         if self.learner is None:
             self.learner = OnlineEMSensor()
         elif not isinstance(self.learner, OnlineEMSensor):
@@ -144,6 +149,11 @@ class RBPFModesMethod:
         return f"rbpf_em_lin {self.fusion.name}"
 
     @property
+    def iterations(self) -> int:
+        """The iterated EKF's linearisations per update (``ekf_iterations``, 5 when not given)."""
+        return 5 if self.ekf_iterations is None else self.ekf_iterations
+
+    @property
     def centre(self) -> bool:
         """Whether the sensors' readings are fused at a fusion centre (a nonlinear sensor of one reading per step)."""
         return self.observation is not None and not isinstance(self.observation, LinearPositionObservation)
@@ -154,7 +164,7 @@ class RBPFModesMethod:
         track targets (not platforms navigating themselves: Braga's aircraft are ``method=rbpf_em``'s), readings of
         their positions or a nonlinear sensor's (its observation part declares which it explains), 2-D positions of
         a ``[px, py, ...]`` state or a 2-D parameter."""
-        if spec.kind == "self":
+        if spec.navigates_itself:
             return (f"the RBPF over noise modes (filter=rbpf_em_lin) tracks targets that sensors measure; on scenario "
                     f"{spec.name} every node navigates itself (its own platform, no target: Braga et al.'s own engine, "
                     f"method=rbpf_em)")
@@ -285,7 +295,7 @@ class RBPFModesMethod:
             state, _ = mkf_step_sensors(state, y[:, t], v[:, t], model, observe, th, gen,
                                         eta=float(n) ** (-em["eta_exponent"]), ess_threshold=self.ess_threshold,
                                         predict=t > 0, learn_mean=False, wrap=obs.residual,
-                                        iterations=self.ekf_iterations)
+                                        iterations=self.iterations)
             stats = local_stats(state).sum(1)  # (B, S, D): every sensor's statistics over the targets
             glob = torch.einsum("sr,brd->bsd", comb, stats)
             if n > em["burn_in"]:

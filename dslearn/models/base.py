@@ -90,6 +90,18 @@ class MotionModel(nn.Module, abc.ABC):
         before any tracking; ``seed`` seeds whatever the fit draws. No-op by default."""
         return self
 
+    # gradient learning ----------------------------------------------------------------
+    #: which of its numbers a gradient learner (``learner=backprop``) may train, by the ``kind`` of
+    #: :class:`~dslearn.learning.backprop.MotionParameters` that holds them: ``lin`` (the transition matrix's agent
+    #: block), ``sfm`` (the social force's numbers), ``gp`` (an exact GP's hyperparameters), ``lstm`` (the network's
+    #: weights); ``None``: none of them
+    gradient_parameters: str | None = None
+
+    def gradient_misfit(self) -> str | None:
+        """Why a gradient learner cannot train the numbers this model declares (:attr:`gradient_parameters`) after
+        all (``None``: nothing against it)."""
+        return None
+
     def begin_episodes(self, states: Tensor) -> None:
         """The episodes about to be tracked or rolled out, ``(B, K+1, Dx)``, for a model conditioned
         per episode on what the protocol gives it (the fitted social force's desired velocities:

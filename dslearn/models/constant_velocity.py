@@ -22,6 +22,9 @@ class ConstantVelocity(MotionModel):
         noise_std: process noise standard deviation :math:`\sigma` (> 0).
     """
 
+    #: a gradient learner trains its transition matrix's agent block (``model=lin``)
+    gradient_parameters = "lin"
+
     @classmethod
     def for_scenario(cls, noise_std: float = 0.1, *, scenario, device=None) -> "ConstantVelocity":
         """The config factory (``conf/model/lin.yaml``): one agent block per agent of ``scenario``."""

@@ -179,6 +179,17 @@ class GPMotionModel(MotionModel):
         self.q_noise.copy_(torch.where(ok, upd, self.q_noise))
         self.q_weight.copy_(torch.where(ok, w_new, self.q_weight))
 
+    #: a gradient learner trains each node's hyperparameters (an exact GP's, on the data it holds)
+    gradient_parameters = "gp"
+
+    def gradient_misfit(self) -> str | None:
+        """Only an exact GP on the mean inputs has a differentiable posterior."""
+        if not isinstance(self.gp, OnlineGP):
+            return f"a GP with model.variant={self.variant} (only the exact GPs: model.variant=exact|window)"
+        if self.inputs != "mean":
+            return "a GP with model.inputs=belief (choose model.inputs=mean)"
+        return None
+
     def _flat(self, x: Tensor) -> Tensor:
         if x.shape[0] != self.num_nodes:
             raise ValueError(f"GPMotionModel expects the node dimension first: got {tuple(x.shape)}, S={self.num_nodes}")

@@ -146,6 +146,8 @@ class SocialLSTM(MotionModel):
 
     # the model option -------------------------------------------------------------------
     learns_offline = True
+    #: a gradient learner fine-tunes every weight of the encoder-decoder (after its offline fit)
+    gradient_parameters = "lstm"
 
     @classmethod
     def for_scenario(

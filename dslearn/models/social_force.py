@@ -81,6 +81,9 @@ class SocialForce(MotionModel):
         softening: :math:`\epsilon` of :func:`soft_distance` in metres (>= 0).
     """
 
+    #: a gradient learner trains each agent's tau, alpha, beta
+    gradient_parameters = "sfm"
+
     @staticmethod
     def spec_misfit(spec) -> str | None:
         """``model=sfm`` takes the simulation's own parameters: a scenario that simulates the social force."""

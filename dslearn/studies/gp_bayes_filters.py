@@ -341,8 +341,7 @@ class GPBayesFiltersStudy:
         fusion = network_fusion(s)
         m = bench.prior_mean
         P = torch.full((*m.shape, 1), s.prior_std ** 2, dtype=self.dtype, device=self.device)
-        local = fusion.name in ("individual", "centralized")  # no consensus rounds
-        net = dict(graph=str(s.graph), rounds=0 if local else fusion.iterations, weights=str(s.weights),
+        net = dict(graph=str(s.graph), rounds=fusion.rounds, weights=str(s.weights),
                    omega=fusion.omega_label if fusion.uses_omega else "-")
         frames = []
         for name in s.filters:

@@ -22,6 +22,7 @@ from dslearn.diagnostics import Diagnostics
 from dslearn.errors import ConfigError
 from dslearn.io import attach_artifact
 from dslearn.filters.distributed import FilterSettings, initial_belief
+from dslearn.filters.information import ExtendedPredict, prediction_step
 from dslearn.fusion.strategies import Fusion
 from dslearn.learning.online import DataSettings, OnlineLearner, checkpoints as eval_points
 from dslearn.models.base import MotionModel, ObservationModel
@@ -95,8 +96,8 @@ class YuStudy:
                               desc="test", position=1)
 
         # the filter's prediction step, when not the EKF's, labels the model's rows (gp_increment+ukf)
-        step = getattr(self.predict, "name", "ekf")
-        model_label = name if step == "ekf" else f"{name}+{step}"
+        step = prediction_step(self.predict)
+        model_label = name if isinstance(step, ExtendedPredict) else f"{name}+{step.name}"
 
         tracks = {}
 
@@ -113,7 +114,7 @@ class YuStudy:
             return metric_rows(
                 metrics, network, model=model_label, consensus=fusion.name,
                 omega=fusion.omega_label if fusion.uses_omega else "-",
-                iterations=fusion.iterations if fusion.name not in ("individual", "centralized") else 0,
+                iterations=fusion.rounds,
                 weights=fusion.weights_rule, train_episodes=int(self.data.train_episodes),
                 test_episodes=int(self.data.test_episodes), train_seen=int(seen),
             )

@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from enum import Enum
 from typing import Callable
 
 import torch
@@ -203,18 +204,28 @@ class Posterior:
         return mean, var
 
 
+class Optimiser(Enum):
+    """How the hyperparameters are maximised (``hyper.optimizer``): Newton's method (:func:`newton_maximise`),
+    Adam's steps or plain gradient steps (:class:`ElementwiseAdam`)."""
+
+    NEWTON = "newton"
+    ADAM = "adam"
+    SGD = "sgd"
+
+
 class ElementwiseAdam:
     """Adam on a batch of independent problems (PyTorch's update rule, ``amsgrad=False``).
 
     Moments and the step counter are kept per problem (``theta.shape[:-1]``); :meth:`step`
     updates only the problems of the selected leading indices, so a problem's trajectory is
     that of ``torch.optim.Adam`` run on that problem alone. ``box = (lo, hi)``: the updated
-    parameters are clipped to it (projected Adam; no clipping without it).
+    parameters are clipped to it (projected Adam; no clipping without it). ``kind``: an
+    :class:`Optimiser` or its value; :attr:`Optimiser.SGD` takes plain gradient steps instead.
     """
 
     def __init__(self, theta: Tensor, lr: float, betas=(0.9, 0.999), eps: float = 1e-8,
-                 kind: str = "adam", box=None):
-        self.lr, self.b1, self.b2, self.eps, self.kind = lr, betas[0], betas[1], eps, kind
+                 kind: str | Optimiser = Optimiser.ADAM, box=None):
+        self.lr, self.b1, self.b2, self.eps, self.kind = lr, betas[0], betas[1], eps, Optimiser(kind)
         self.box = box
         self.m = torch.zeros_like(theta)
         self.v = torch.zeros_like(theta)
@@ -223,7 +234,7 @@ class ElementwiseAdam:
     def step(self, theta: Tensor, grad: Tensor, idx: Tensor) -> Tensor:
         """One descent step on the problems ``theta[idx]`` with loss gradient ``grad``
         (shape of ``theta[idx]``); returns the updated ``theta[idx]``."""
-        if self.kind == "sgd":
+        if self.kind is Optimiser.SGD:
             return self._clip(theta - self.lr * grad)
         t = self.t[idx] + 1
         m = self.b1 * self.m[idx] + (1.0 - self.b1) * grad

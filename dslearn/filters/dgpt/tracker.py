@@ -39,6 +39,7 @@ from torch import Tensor
 
 from dslearn.filters.dgpt.hyperopt import (
     ElementwiseAdam,
+    Optimiser,
     Posterior,
     SolveInfo,
     bounds,
@@ -52,7 +53,7 @@ from dslearn.filters.dgpt.hyperopt import (
 from dslearn.fusion.aggregation import aggregate, aggregate_grbcm, ucb_bound, ucb_bound_grbcm
 
 GP_INPUTS = ("temporal", "spatiotemporal")
-OPTIMISERS = ("newton", "adam", "sgd")
+OPTIMISERS = tuple(o.value for o in Optimiser)
 
 
 @dataclass
@@ -306,10 +307,11 @@ def track(meas: Tensor, avail: Tensor, window: Tensor, *, gp_input: str = "tempo
 
     th_e = _init_theta((b, P, C), d, hc, dtype, dev)
     th_c = _init_theta((b, 1, C), d, hc, dtype, dev)
-    newton = hc.optimizer == "newton"
+    optimiser = Optimiser(hc.optimizer)
+    newton = optimiser is Optimiser.NEWTON
     if not newton:
-        opt_e = ElementwiseAdam(th_e, hc.lr, kind=hc.optimizer, box=box)
-        opt_c = ElementwiseAdam(th_c, hc.lr, kind=hc.optimizer, box=box)
+        opt_e = ElementwiseAdam(th_e, hc.lr, kind=optimiser, box=box)
+        opt_c = ElementwiseAdam(th_c, hc.lr, kind=optimiser, box=box)
 
     z0 = torch.zeros(b, nm, T, 2, dtype=dtype, device=dev)
     upd_mean, upd_var, pred_mean, pred_var = z0.clone(), z0.clone(), z0.clone(), z0.clone()
