@@ -102,6 +102,12 @@ def presets() -> dict[str, str]:
             "the training measurements (learner=calibrate).").replace(
             f"method=ekf_{m}_hybrid)", f"method=ekf_{m}_hybrid_calibrated)").replace(
             f"learner: {LEARNERS[m]}", "learner: calibrate").replace("observation: sensor", "observation: linear")
+    # the social force fitted to the scenario (model=sfm_fit: shared tau, alpha, beta by grid search and Adam on the
+    # training episodes' tracks, learner=offline): the social force's row on the scenarios that do not simulate it
+    out["ekf_sfm_fit_hybrid.yaml"] = out["ekf_sfm_hybrid.yaml"].replace(
+        "the social force model with the simulation's parameters", "the social force model fitted offline to the "
+        "training episodes' tracks").replace("method=ekf_sfm_hybrid)", "method=ekf_sfm_fit_hybrid)").replace(
+        "override /model: sfm", "override /model: sfm_fit").replace("learner: none", "learner: offline")
     # the other papers' engines taken apart, on the position-sensor scenarios: Braga et al.'s RBPF + online EM +
     # consensus on the statistics over a constant-velocity state (dslearn/methods/rbpf_modes.py)
     out["rbpf_em_lin.yaml"] = (

@@ -191,9 +191,9 @@ def test_bad_settings_named():
     with pytest.raises(ConfigError, match="tracks.initiation"):
         TrackManagerSettings(initiation="one_point")
     with pytest.raises(ConfigError, match="tracks.confirm_m"):
-        TrackManagerSettings(initiation="m_of_n", confirm_m=4, confirm_n=3)
-    with pytest.raises(ConfigError, match="tracks.max_missed"):
-        TrackManagerSettings(max_missed=0)
+        TrackManagerSettings(initiation="single_point", confirm_m=4, confirm_n=3)
+    with pytest.raises(ConfigError, match="tracks.delete_after"):
+        TrackManagerSettings(delete_after=0)
     mean, cov, det = one_track()
     with pytest.raises(ConfigError, match="present"):
         JPDA().associate(mean, cov, LinearModel(H2, R2), det, present=torch.tensor([True]))
@@ -205,7 +205,7 @@ def test_bad_settings_named():
 def test_two_point_initiation_and_deletion():
     obs = LinearPositionObservation(0.2)
     r = 0.04
-    tm = TrackManager(TrackManagerSettings(initiation="two_point", max_missed=2, max_speed=2.0, dt=0.5))
+    tm = TrackManager(TrackManagerSettings(initiation="two_point", delete_after=2, max_speed=2.0, dt=0.5))
     tm.step(None, torch.tensor([[0.0, 0.0], [10.0, 10.0]], dtype=D), obs)
     assert len(tm) == 0
     # (0.5, 0.5) is 0.71 from (0, 0), within 2 m/s * 0.5 s; (13, 10) is 3 m from (10, 10): beyond
@@ -217,7 +217,7 @@ def test_two_point_initiation_and_deletion():
     ref[:2, 2:] = ref[2:, :2] = r / 0.5 * np.eye(2)
     ref[2:, 2:] = 2 * r / 0.25 * np.eye(2)
     np.testing.assert_allclose(tm.cov[0].numpy(), ref, atol=1e-15)
-    # two missed steps delete it (max_missed = 2); JPDA with nothing in the gate (the far detections, 50 m
+    # two missed steps delete it (delete_after = 2); JPDA with nothing in the gate (the far detections, 50 m
     # apart, start no track either)
     jp = JPDA(0.9, 1e-3, 0.99)
     for k in range(2):
@@ -231,7 +231,7 @@ def test_two_point_initiation_and_deletion():
 
 def test_m_of_n_confirmation():
     obs = LinearPositionObservation(0.2)
-    tm = TrackManager(TrackManagerSettings(initiation="m_of_n", confirm_m=2, confirm_n=3, max_speed=2.0))
+    tm = TrackManager(TrackManagerSettings(initiation="single_point", confirm_m=2, confirm_n=3, max_speed=2.0))
     tm.step(None, torch.tensor([[0.0, 0.0]], dtype=D), obs)
     assert len(tm) == 1 and tm.confirmed.tolist() == [False]
     np.testing.assert_allclose(tm.cov[0].diagonal().numpy(), [0.04, 0.04, 1.0, 1.0])
@@ -240,7 +240,7 @@ def test_m_of_n_confirmation():
     tm.step(a, torch.tensor([[0.3, 0.1]], dtype=D), obs)
     assert tm.confirmed.tolist() == [True] and tm.hits.tolist() == [2]
     # a tentative track missed twice in its first 3 steps cannot reach 2 of 3: deleted at once
-    tm2 = TrackManager(TrackManagerSettings(initiation="m_of_n", confirm_m=2, confirm_n=3))
+    tm2 = TrackManager(TrackManagerSettings(initiation="single_point", confirm_m=2, confirm_n=3))
     tm2.step(None, torch.tensor([[0.0, 0.0]], dtype=D), obs)
     none = torch.zeros(0, 2, dtype=D)
     a = gnn.associate(tm2.mean, tm2.cov, obs, none)

@@ -180,7 +180,7 @@ def _check_filter(option, cfg, world):
         f = cfg.filter
         assert get_object(f._target_) is RBPFModesMethod and "predict" not in f
         assert (f.num_particles, f.process_noise, f.ess_threshold, f.prior_pos_std, f.prior_vel_std,
-                f.ekf_iterations) == (64, 1.0, 0.5, 1000.0, 1000.0, 5)
+                f.ekf_iterations) == (64, 1.0, 0.5, 1000.0, 1000.0, None)  # None: 5 with a nonlinear sensor
         assert "em" not in f and "modes" not in f  # the online EM's: learner=online_em_sensor
         return
     f = cfg.filter  # ukf, ukf_mm and adf inherit the priors and the learning gate of the default
@@ -375,6 +375,15 @@ def _check_scenario(option, cfg, world):
         assert (spec.name, spec.measurement, spec.num_agents, spec.labelled, sc.dt, sc.steps) == \
             ("yu_crowd_clutter", "position", 4, False, 0.25, 12)
         assert (sc.p_detect, sc.clutter_rate, sc.start_velocity_std, sc.network) == (0.9, 1.0, 1.0, None)
+        assert not sc.births and not getattr(spec, "births", False)
+        return
+    if option == "yu_crowd_births":  # the crowd with targets that enter and leave: 6 s (24 steps), declared births
+        sc = build_scenario(cfg)
+        spec = sc.spec
+        assert (spec.name, spec.measurement, spec.num_agents, spec.labelled, spec.births, sc.dt, sc.steps) == \
+            ("yu_crowd_births", "position", 4, False, True, 0.25, 24)
+        assert (sc.p_detect, sc.clutter_rate, sc.start_velocity_std, sc.birth_until, sc.death_from, sc.network) == \
+            (0.9, 1.0, 1.0, 0.4, 0.6, None)
         return
     if option.startswith("liu_"):  # Liu et al.'s S1-S3 as a matrix scenario: one target, 200 sensors, its own field
         cfg = _compose("task=matrix", "method=dgpt_gpoe", f"scenario={option}")
@@ -387,18 +396,23 @@ def _check_scenario(option, cfg, world):
         assert sc.area == (-500.0, 500.0, -500.0, 500.0) and bool((net.positions.abs() <= 500.0).all())
         assert cfg.scenario.trajectory._target_ == f"dslearn.sim.manoeuvres.generate_{option[4:]}"
         return
-    if option in ("eth_zara1", "corridor"):  # a recorded data set: 2 pedestrians, 4 LiDARs around its extent
+    if option.startswith("eth_") or option == "corridor":  # a recorded data set: 2 pedestrians, 4 LiDARs around it
         cfg = _compose("task=matrix", "method=ekf_lin_hybrid", f"scenario={option}")
-        files = {"eth_zara1": ["crowds_zara01.txt"], "corridor": ["corridor.txt"]}[option]
+        files = {"eth_zara1": ["crowds_zara01.txt"], "eth_zara2": ["crowds_zara02.txt"], "eth_eth": ["biwi_eth.txt"],
+                 "eth_hotel": ["biwi_hotel.txt"], "eth_univ": ["students001.txt", "students003.txt"],
+                 "corridor": ["corridor.txt"]}[option]
         assert list(cfg.scenario.dataset.files) == files and cfg.scenario.name == option
-        if option == "eth_zara1" and not ethucy_data_available():
+        if option.startswith("eth_") and not ethucy_data_available():
             pytest.skip("the ETH/UCY data are absent")
         sc = build_scenario(cfg)
         spec, net = sc.spec, sc.network
         assert (spec.name, spec.measurement, spec.num_agents, spec.state, spec.dt, spec.steps, spec.source) == \
             (option, "position", 2, "pv2d", 0.4, 11, "recorded")
         assert (net.num_nodes, int(net.is_sensor.sum()), net.sensing_range, net.meas_std) == (4, 4, 8.0, 0.2)
-        pools = {"eth_zara1": (233, 37), "corridor": (71, 28)}[option]
+        # the pools of the tracking study's cut (pairs of mutual nearest neighbours, 12 states, the last 20 % of each
+        # recording the test pool), as the scenario files state them
+        pools = {"eth_zara1": (233, 37), "eth_zara2": (278, 71), "eth_eth": (179, 130), "eth_hotel": (95, 33),
+                 "eth_univ": (1355, 215), "corridor": (71, 28)}[option]
         assert (sc.pool_size("train"), sc.pool_size("test")) == pools
         return
     if option in ("jiang", "braga"):  # Jiang's and Braga's settings as matrix scenarios: the studies' values
@@ -506,13 +520,14 @@ def _check_method(option, cfg, world):
         return
     model, _, fusion = rest.rpartition("_")
     # the model's natural learner: online for the GP, offline for the LSTMs, none for the fixed models
-    learner = {"gp": "online", "lstm": "offline", "social_lstm": "offline"}.get(model, "none")
+    learner = {"gp": "online", "lstm": "offline", "social_lstm": "offline", "sfm_fit": "offline"}.get(model, "none")
+    model_option = {**PRESET_MODELS, "sfm_fit": "sfm_fit"}[model]  # the fitted social force: one preset (EKF, hybrid)
     assert cfg.learner == _compose(f"learner={learner}").learner
     assert fusion in PRESET_FUSIONS and cfg.consensus == _compose(f"consensus={fusion}").consensus
     # the LSTMs: the matrix's recipe (early stopping, float32 weights), every other key the model option's
     recipe = {"schedule": "early_stopping", "patience": 5, "weights_dtype": "float32"} if "lstm" in model else {}
-    assert cfg.model == {**_compose(f"model={PRESET_MODELS[model]}").model, **recipe}
-    assert not recipe or all(cfg.model[k] != _compose(f"model={PRESET_MODELS[model]}").model[k] for k in recipe)
+    assert cfg.model == {**_compose(f"model={model_option}").model, **recipe}
+    assert not recipe or all(cfg.model[k] != _compose(f"model={model_option}").model[k] for k in recipe)
     # LIN: the scenario's own sensor model (observation=sensor); the walkers' models: the linear position sensor
     assert cfg.observation == (_compose("observation=sensor").observation if model == "lin" else _compose().observation)
 
@@ -562,12 +577,20 @@ def _check_associator(option, cfg, world):
     obj = build(cfg.associator, "associator")
     assert type(obj).__name__ == ASSOCIATOR_CLASSES[option] and obj.name == option
     assert _compose().associator._target_.endswith("LabelsAssociator")  # the root default
-    keys = {"labels": set(), "gnn": {"gate_probability", "detection_probability", "clutter_density", "cost"},
-            "jpda": {"gate_probability", "detection_probability", "clutter_density", "max_joint_events"}}[option]
+    keys = {"labels": set(), "gnn": {"gate_probability", "detection_probability", "clutter_density", "cost", "tracks"},
+            "jpda": {"gate_probability", "detection_probability", "clutter_density", "max_joint_events",
+                     "tracks"}}[option]
     assert set(cfg.associator) - {"_target_"} == keys == set(type(obj).config_reads)
     if option != "labels":
         assert (obj.gate_probability, obj.detection_probability, obj.clutter_density) == (0.99, None, None)
         assert getattr(obj, "cost", "likelihood") == "likelihood"
+        # track management (targets that enter and leave): every key listed, managed only where births are declared
+        from dslearn.association.multitrack import KEYS, TrackSettings
+
+        assert set(cfg.associator.tracks) == set(KEYS)
+        assert obj.tracks == TrackSettings(manage="auto", initiation="two_point", confirm_m=2, confirm_n=3,
+                                           delete_after=3, max_speed=None, velocity_std=None,
+                                           t2ta_gate_probability=0.99, adopt=True)
 
 
 CHECKS = {"data": _check_data, "associator": _check_associator, "learner": _check_learner, "method": _check_method, "dataset": _check_dataset, "folds": _check_folds,
@@ -582,12 +605,14 @@ EXPECTED_OPTIONS = {"data": {"paper", "small"}, "associator": set(ASSOCIATOR_CLA
                        "ukf_mm_gp_hybrid", "pf_gp_hybrid", "ekf_sfm_hybrid_backprop", "ekf_gp_hybrid_backprop",
                        "ekf_lstm_hybrid_backprop", "ekf_lin_hybrid_calibrated", "ekf_sfm_hybrid_calibrated",
                        "ekf_gp_hybrid_calibrated", "ekf_lstm_hybrid_calibrated", "ekf_lin_hybrid_gnn",
-                       "ekf_lin_hybrid_jpda", "ekf_gp_hybrid_gnn", "ekf_gp_hybrid_jpda", "ekf_cv_fg_individual"},
+                       "ekf_lin_hybrid_jpda", "ekf_gp_hybrid_gnn", "ekf_gp_hybrid_jpda", "ekf_cv_fg_individual",
+                       "ekf_sfm_fit_hybrid"},
                     "model": set(GP_MODELS) | {"lin", "sfm", "lstm", "social_lstm", "gp_cv", "sfm_fit", "cv_damped"},
                     "observation": {"linear", "gp", "sensor", "squared_range", "range", "bearing", "terrain"}, "consensus": set(FUSION_CLASSES) | AGGREGATIONS | {"statistics"},
                     "network": {"yu", "yu_blind"},
-                    "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1",
-                                 "corridor", "jiang", "braga", "yu_crowd_clutter"}}
+                    "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1", "eth_zara2",
+                                 "eth_eth", "eth_hotel", "eth_univ",
+                                 "corridor", "jiang", "braga", "yu_crowd_clutter", "yu_crowd_births"}}
 
 
 def test_every_option_has_its_expected_values():

@@ -147,7 +147,7 @@ def test_a_cell_that_does_not_fit_is_refused_before_any_work():
 
 
 def test_dslearn_run_refuses_a_cell_that_does_not_fit():
-    from dslearn.run import precheck
+    from dslearn.app.precheck import precheck
 
     msg = precheck(["task=matrix", "method=ekf_sfm_hybrid", "scenario=liu_s1"])
     assert msg is not None and "model=sfm is the true social-force model" in msg and \
@@ -181,8 +181,12 @@ def _expected_fit(preset_cfg, scenario) -> bool:
     # detections is refused on a labelled scenario (the full matrix keeps each associator on its own column)
     assoc = str(preset_cfg.get("associator", {}).get("_target_", "")).rsplit(".", 1)[-1]
     if assoc in ("GNNAssociator", "JPDAAssociator") or not getattr(spec, "labelled", True):
+        # targets that enter and leave (declared births): managed tracks, along which nothing learns (learner=none
+        # with a model that learns nothing: LIN)
+        managed_ok = not getattr(spec, "births", False) or (
+            str(preset_cfg.learner._target_).endswith("NoLearning") and str(preset_cfg.model.name) == "lin")
         return (not spec.labelled and assoc in ("GNNAssociator", "JPDAAssociator")
-                and engine.endswith("DistributedFilter") and spec.measurement == "position")
+                and engine.endswith("DistributedFilter") and spec.measurement == "position" and managed_ok)
     if engine.endswith("DGPTMethod"):
         return spec.measurement == "position"
     if engine.endswith("FactorGraphMethod"):  # Jiang's identification + EKF-FG: squared-range sensors
@@ -222,7 +226,7 @@ def master_left_out(experiment) -> list:
 
 
 def _jobs(experiment, judge=True):
-    from dslearn.run import sweep_combinations
+    from dslearn.app.composer import sweep_combinations
 
     with initialize_config_dir(config_dir=CONF, version_base=None):
         combos, multirun, master = sweep_combinations([f"experiment={experiment}"])

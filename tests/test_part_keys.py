@@ -1,15 +1,15 @@
 """Nothing dropped at any depth: a key set inside a root group that the chosen part does not read is refused up
 front, naming the key and why (:func:`dslearn.schemas.base.unread_keys`, from the start-up check
-:func:`dslearn.run.precheck`); a key the part reads is accepted.
+:func:`dslearn.app.precheck.precheck`); a key the part reads is accepted.
 
 Every part x every key of its group: the options of each group (``conf/<group>/*.yaml``) and the keys under each
 option's node are enumerated from the configs, in the tasks that build the group's option as that part (``yu``,
 ``matrix``, ``yu_faults``, ``ethucy_tracking``), and every task's own keys; each key is overridden with a
 different value and the start-up check's part-key stage (:func:`dslearn.schemas.base.check_overrides`, what
-:func:`dslearn.run.validate_job` calls for each job) either accepts it or refuses it naming the key. The refusals
-must be exactly :data:`REFUSED` (written from the parts: what each reads). A composition per option, not per key,
-keeps this fast; a sample of every group goes through :func:`dslearn.run.precheck` itself, and each example of
-issue 32 is checked one by one with its exact message.
+:func:`dslearn.app.composer.validate_job` calls for each job) either accepts it or refuses it naming the key. The
+refusals must be exactly :data:`REFUSED` (written from the parts: what each reads). A composition per option, not
+per key, keeps this fast; a sample of every group goes through :func:`dslearn.app.precheck.precheck` itself, and
+each example of issue 32 is checked one by one with its exact message.
 """
 
 from __future__ import annotations
@@ -22,7 +22,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 import dslearn.schemas  # noqa: F401  (registers the task schemas the configs name)
 from dslearn.conf_paths import CONF_DIR
-from dslearn.run import _describe, override_keys, precheck
+from dslearn.app.job import _describe
+from dslearn.app.options import override_keys
+from dslearn.app.precheck import precheck
 from dslearn.schemas import base as schema_base
 from dslearn.schemas.base import check_overrides
 from dslearn.schemas.core import check_engine_parts
@@ -405,6 +407,6 @@ def test_preset_part_replaced_in_first_line(hydra_ctx):
 
 
 def test_override_keys_of_sweep_lines():
-    """The part-key check sees each job's own lines (what :func:`dslearn.run.validate_job` passes)."""
+    """The part-key check sees each job's own lines (what :func:`dslearn.app.composer.validate_job` passes)."""
     assert override_keys(["consensus.iterations=2", "hydra.run.dir=x", "consensus=ci"]) == [
         ("consensus.iterations", "consensus.iterations=2"), ("consensus", "consensus=ci")]

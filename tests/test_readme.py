@@ -40,7 +40,7 @@ def test_the_readme_shows_commands_and_python():
 
 @pytest.mark.parametrize("command", COMMANDS)
 def test_every_cli_snippet_passes_the_up_front_check(command, tmp_path):
-    from dslearn.run import precheck
+    from dslearn.app.precheck import precheck
 
     argv = shlex.split(command)[1:]
     if argv and argv[0] in ("--help", "--version"):
@@ -52,13 +52,13 @@ def test_every_cli_snippet_passes_the_up_front_check(command, tmp_path):
         from hydra import initialize_config_dir
 
         from dslearn.conf_paths import CONF_DIR
-        from dslearn.run import sweep_combinations
+        from dslearn.app.composer import sweep_combinations
 
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
             combos, multirun, master = sweep_combinations(argv)
         methods = len(list((CONF_DIR / "method").glob("*.yaml")))
         scenarios = len(str(master.hydra.sweeper.params.scenario).split(","))
-        assert multirun and len(combos) == methods * scenarios == 52 * 9, (len(combos), methods, scenarios)
+        assert multirun and len(combos) == methods * scenarios == 53 * 14, (len(combos), methods, scenarios)
         return
     # the sweep / run folders a snippet names are the reader's; the check must not need them to exist
     argv = [a for a in argv if not a.startswith(("hydra.sweep.dir=", "hydra.run.dir="))]

@@ -3,7 +3,8 @@ covariance (:mod:`.gating`), the associators behind one interface (:class:`.base
 (:class:`.labels.LabelsGiven`, the labelled scenarios' behaviour), global nearest neighbour
 (:class:`.gnn.GNN`) and JPDA (:class:`.jpda.JPDA`), and track management (:mod:`.tracks`: initiation,
 confirmation, deletion); on a sensor network, every node's association with its own tracks before the consensus
-and the ``associator=`` slot of the distributed filter (:mod:`.network`). Float64 throughout; the measurement model is the project's
+and the ``associator=`` slot of the distributed filter (:mod:`.network`), and, where targets enter and leave, every
+node's managed tracks matched to its neighbours' before a consensus per matched track (:mod:`.multitrack`). Float64 throughout; the measurement model is the project's
 :class:`~dslearn.models.base.ObservationModel` (its reading, Jacobian and noise covariance)."""
 
 from dslearn.association.base import Association, Associator, MeasurementPrediction, kalman_update, predict_measurement

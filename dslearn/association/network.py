@@ -17,14 +17,17 @@ consensus then run per track, unchanged:
   node's update is the PDA mean; the spread of the innovations (the PDA covariance's last term) is left out.
 
 The tracks are the ``A`` targets' from the start (the scenario's declared start region,
-:func:`dslearn.filters.distributed.associated_belief`): there is no track initiation or deletion on the network
-yet, and no track-to-track association across nodes (node ``s``'s track ``j`` and node ``r``'s track ``j`` are
-fused as one target, as both started from target ``j``'s start region).
+:func:`dslearn.filters.distributed.associated_belief`): node ``s``'s track ``j`` and node ``r``'s track ``j`` are
+fused as one target, as both started from target ``j``'s start region. Where targets enter and leave (a scenario
+that declares births, or ``tracks.manage=on`` in the slot) the tracks are managed instead: every node starts,
+confirms and deletes its own tracks and matches them to its neighbours' before the consensus
+(:mod:`.multitrack`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import math
 
@@ -35,6 +38,7 @@ from dslearn.association.base import DTYPE
 from dslearn.association.gating import check_probability, gate
 from dslearn.association.gnn import GNN, assignment, log_likelihood_ratios
 from dslearn.association.jpda import JPDA, marginals
+from dslearn.association.multitrack import NetworkTracks, TrackSettings
 from dslearn.errors import ConfigError, check_choice, check_positive
 from dslearn.types import safe_cholesky, symmetrize
 
@@ -157,21 +161,32 @@ class GNNAssociator:
     detection_probability: float | None = None
     clutter_density: float | None = None
     cost: str = "likelihood"
+    tracks: Any = None
 
     name = "gnn"
-    config_reads = ("gate_probability", "detection_probability", "clutter_density", "cost")
+    config_reads = ("gate_probability", "detection_probability", "clutter_density", "cost", "tracks")
     config_unread = "global nearest neighbour does not read it"
     needs_labels = False
 
     def __post_init__(self):
         _check_common(self.gate_probability, self.detection_probability, self.clutter_density)
         check_choice("associator.cost", self.cost, ("likelihood", "mahalanobis"))
+        object.__setattr__(self, "tracks", TrackSettings.of(self.tracks))
 
-    def make(self, scenario, network, num_tracks: int) -> NodeAssociation:
+    def node_associator(self, scenario, network) -> GNN:
+        """The associator every node runs, with the scenario's declared facts where the slot leaves them open."""
         p, lam = _detection_facts(scenario, network)
         p = p if self.detection_probability is None else self.detection_probability
         lam = lam if self.clutter_density is None else self.clutter_density
-        return NodeAssociation(GNN(p, lam, self.gate_probability, self.cost), num_tracks)
+        return GNN(p, lam, self.gate_probability, self.cost)
+
+    def make(self, scenario, network, num_tracks: int) -> NodeAssociation:
+        return NodeAssociation(self.node_associator(scenario, network), num_tracks)
+
+    def network_tracks(self, scenario, network) -> NetworkTracks | None:
+        """Managed tracks (:mod:`.multitrack`) where the slot's ``tracks`` manage them on this scenario, else
+        ``None`` (the declared targets' tracks from the start)."""
+        return _network_tracks(self, scenario, network)
 
 
 @dataclass(frozen=True)
@@ -184,9 +199,10 @@ class JPDAAssociator:
     detection_probability: float | None = None
     clutter_density: float | None = None
     max_joint_events: int = 100_000
+    tracks: Any = None
 
     name = "jpda"
-    config_reads = ("gate_probability", "detection_probability", "clutter_density", "max_joint_events")
+    config_reads = ("gate_probability", "detection_probability", "clutter_density", "max_joint_events", "tracks")
     config_unread = "JPDA does not read it"
     needs_labels = False
     #: JPDA needs P_D < 1 (a missed detection must be possible): a scenario's P_D = 1 is taken as this
@@ -197,9 +213,32 @@ class JPDAAssociator:
         if self.detection_probability is not None:
             check_probability("associator.detection_probability", self.detection_probability, closed=False)
         check_positive("associator.max_joint_events", self.max_joint_events)
+        object.__setattr__(self, "tracks", TrackSettings.of(self.tracks))
 
-    def make(self, scenario, network, num_tracks: int) -> NodeAssociation:
+    def node_associator(self, scenario, network) -> JPDA:
+        """The associator every node runs, with the scenario's declared facts where the slot leaves them open."""
         p, lam = _detection_facts(scenario, network)
         p = min(p, self.MAX_DETECTION_PROBABILITY) if self.detection_probability is None else self.detection_probability
         lam = lam if self.clutter_density is None else self.clutter_density
-        return NodeAssociation(JPDA(p, lam, self.gate_probability, int(self.max_joint_events)), num_tracks)
+        return JPDA(p, lam, self.gate_probability, int(self.max_joint_events))
+
+    def make(self, scenario, network, num_tracks: int) -> NodeAssociation:
+        return NodeAssociation(self.node_associator(scenario, network), num_tracks)
+
+    def network_tracks(self, scenario, network) -> NetworkTracks | None:
+        """As :meth:`GNNAssociator.network_tracks`."""
+        return _network_tracks(self, scenario, network)
+
+
+def _network_tracks(slot, scenario, network) -> NetworkTracks | None:
+    settings: TrackSettings = slot.tracks
+    if not settings.manages(scenario.spec):
+        return None
+    ctx = scenario.ctx()
+    vstd = getattr(scenario, "start_velocity_std", None)
+    if vstd is None and (settings.velocity_std is None or settings.max_speed is None):
+        raise ConfigError(f"associator.tracks: scenario {scenario.spec.name} declares no start_velocity_std; set "
+                          f"associator.tracks.velocity_std and associator.tracks.max_speed")
+    manager = settings.manager_settings(ctx.dt, 1.0 if vstd is None else vstd)
+    return NetworkTracks(slot.node_associator(scenario, network), manager,
+                         settings.t2ta_gate_probability, settings.adopt)

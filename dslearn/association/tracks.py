@@ -6,14 +6,16 @@ detections (an :class:`~dslearn.association.base.Associator`) and hands the resu
 which keeps the updated tracks, counts hits and misses, deletes and starts tracks:
 
 * ``initiation="two_point"``: a detection left over at one step and one left over at the next within
-  ``max_speed * dt`` of it (paired by an optimal assignment of their distances) start a confirmed track:
+  ``max_speed * dt`` of it (paired by an optimal assignment of their distances) start a track:
   position the second detection, velocity their difference over ``dt``, covariance
   :math:`\begin{bmatrix} R & R/\Delta t \\ R/\Delta t & 2R/\Delta t^2 \end{bmatrix}` (two-point differencing);
-* ``initiation="m_of_n"``: each left-over detection starts a tentative track (its position, velocity 0 with
-  standard deviation ``max_speed / 2`` per axis), confirmed once it has been detected at ``confirm_m`` of its
-  first ``confirm_n`` steps and deleted as soon as it no longer can be;
+* ``initiation="single_point"``: each left-over detection starts a tentative track (its position, velocity 0 with
+  standard deviation ``velocity_std`` per axis, default ``max_speed / 2``);
 
-a confirmed track is deleted after ``max_missed`` consecutive missed steps. A track is detected at a step when
+a tentative track is confirmed once it has been detected at ``confirm_m`` of its first ``confirm_n`` steps (a
+two-point track counts its two detections as its first two steps: with ``confirm_m <= 2`` it starts confirmed) and
+deleted as soon as it no longer can be; a confirmed track is deleted after ``delete_after`` consecutive missed
+steps. A track is detected at a step when
 its most probable hypothesis is a detection (:attr:`~dslearn.association.base.Association.assigned`).
 """
 
@@ -32,20 +34,25 @@ from dslearn.models.base import ObservationModel
 from dslearn.types import AGENT_DIM
 
 
+#: the ways a track starts (``tracks.initiation``)
+INITIATIONS = ("two_point", "single_point")
+
+
 @dataclass(frozen=True)
 class TrackManagerSettings:
     """Track management settings (the ``associator`` slot's ``tracks``), checked when built."""
 
-    initiation: str = "two_point"  #: ``two_point`` or ``m_of_n``
+    initiation: str = "two_point"  #: ``two_point`` or ``single_point``
     confirm_m: int = 2  #: M of M-of-N confirmation
     confirm_n: int = 3  #: N of M-of-N confirmation
-    max_missed: int = 3  #: consecutive missed steps that delete a confirmed track
-    max_speed: float = 3.0  #: the fastest a target moves (m/s): two-point pairing distance, one-point velocity std * 2
+    delete_after: int = 3  #: consecutive missed steps that delete a confirmed track
+    max_speed: float = 3.0  #: the fastest a target moves (m/s): the two-point pairing distance is ``max_speed * dt``
     dt: float = 1.0  #: the time step (s)
+    velocity_std: float | None = None  #: single-point initiation's velocity std per axis (m/s); None: max_speed / 2
 
     def __post_init__(self):
-        check_choice("tracks.initiation", self.initiation, ("two_point", "m_of_n"))
-        for name in ("confirm_m", "confirm_n", "max_missed"):
+        check_choice("tracks.initiation", self.initiation, INITIATIONS)
+        for name in ("confirm_m", "confirm_n", "delete_after"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ConfigError(f"tracks.{name}={v!r} must be an integer >= 1")
@@ -53,6 +60,12 @@ class TrackManagerSettings:
             raise ConfigError(f"tracks.confirm_m={self.confirm_m} must be <= tracks.confirm_n={self.confirm_n}")
         check_positive("tracks.max_speed", self.max_speed)
         check_positive("tracks.dt", self.dt)
+        if self.velocity_std is not None:
+            check_positive("tracks.velocity_std", self.velocity_std)
+
+    @property
+    def single_point_velocity_std(self) -> float:
+        return self.max_speed / 2 if self.velocity_std is None else float(self.velocity_std)
 
 
 class TrackManager:
@@ -79,6 +92,7 @@ class TrackManager:
             setattr(self, name, getattr(self, name)[keep])
 
     def _add(self, mean: Tensor, cov: Tensor, confirmed: bool, hits: int) -> None:
+        """Start ``K`` tracks that have been detected at each of their first ``hits`` steps."""
         k = mean.shape[0]
         if not k:
             return
@@ -88,14 +102,23 @@ class TrackManager:
         self._next_id += k
         self.confirmed = torch.cat([self.confirmed, torch.full((k,), confirmed)])
         self.hits = torch.cat([self.hits, torch.full((k,), hits)])
-        self.age = torch.cat([self.age, torch.ones(k, dtype=torch.int64)])
+        self.age = torch.cat([self.age, torch.full((k,), hits, dtype=torch.int64)])
         self.missed_run = torch.cat([self.missed_run, torch.zeros(k, dtype=torch.int64)])
 
+    def adopt(self, mean: Tensor, cov: Tensor, missed_run: Tensor) -> None:
+        """Take ``K`` confirmed tracks from elsewhere (a neighbour's, :mod:`.multitrack`): ``mean (K, 4)``, ``cov
+        (K, 4, 4)``, their consecutive missed steps ``missed_run (K,)``; new ids, confirmed."""
+        k = len(self)
+        self._add(mean.to(DTYPE), cov.to(DTYPE), confirmed=True, hits=self.settings.confirm_m)
+        self.missed_run[k:] = torch.as_tensor(missed_run, dtype=torch.int64)
+
     def step(self, association: Association | None, detections: Tensor, observation: ObservationModel,
-             present: Tensor | None = None) -> None:
+             present: Tensor | None = None, hit: Tensor | None = None) -> None:
         """Keep the associated tracks, count, delete and start tracks. ``association``: the associator's result
         on this manager's predicted tracks (None when there are no tracks: every detection is left over);
-        ``detections (M, 2)`` positions, ``present (M,)``."""
+        ``detections (M, 2)`` positions, ``present (M,)``; ``hit (T,)``: which tracks count as detected at this
+        step (default: those whose most probable hypothesis is a detection; on a network: detected by any node
+        holding the track, :mod:`.multitrack`)."""
         s = self.settings
         if not observation.measures_position:
             raise ConfigError("track initiation starts tracks from position detections; the observation model "
@@ -110,24 +133,21 @@ class TrackManager:
             if association.mean.shape[0] != len(self):
                 raise ConfigError(f"the association has {association.mean.shape[0]} tracks, the manager {len(self)}")
             self.mean, self.cov = association.mean.to(DTYPE), association.cov.to(DTYPE)
-            hit = association.assigned >= 0
+            hit = association.assigned >= 0 if hit is None else torch.as_tensor(hit, dtype=torch.bool)
             self.age = self.age + 1
             self.hits = self.hits + hit.long()
             self.missed_run = torch.where(hit, 0, self.missed_run + 1)
             left = association.unassigned & present
-            # confirmation and deletion
-            if s.initiation == "m_of_n":
-                tentative = ~self.confirmed
-                self.confirmed = self.confirmed | (tentative & (self.hits >= s.confirm_m) & (self.age <= s.confirm_n))
-                hopeless = tentative & ~self.confirmed & (self.age - self.hits > s.confirm_n - s.confirm_m)
-            else:
-                hopeless = torch.zeros(len(self), dtype=torch.bool)
-            dead = (self.confirmed & (self.missed_run >= s.max_missed)) | hopeless
+            # confirmation (M of the first N steps) and deletion
+            tentative = ~self.confirmed
+            self.confirmed = self.confirmed | (tentative & (self.hits >= s.confirm_m) & (self.age <= s.confirm_n))
+            hopeless = tentative & ~self.confirmed & (self.age - self.hits > s.confirm_n - s.confirm_m)
+            dead = (self.confirmed & (self.missed_run >= s.delete_after)) | hopeless
             self._keep(~dead)
         z = det[left]
         r = observation.noise_cov(torch.zeros(z.shape[0], AGENT_DIM, dtype=DTYPE)).to(DTYPE)  # (K, 2, 2)
-        if s.initiation == "m_of_n":
-            vel = torch.eye(2, dtype=DTYPE) * (s.max_speed / 2) ** 2
+        if s.initiation == "single_point":
+            vel = torch.eye(2, dtype=DTYPE) * s.single_point_velocity_std ** 2
             cov = torch.zeros(z.shape[0], AGENT_DIM, AGENT_DIM, dtype=DTYPE)
             cov[:, :2, :2], cov[:, 2:, 2:] = r, vel
             mean = torch.cat([z, torch.zeros_like(z)], dim=-1)
@@ -149,7 +169,7 @@ class TrackManager:
         cov = torch.zeros(len(rows), AGENT_DIM, AGENT_DIM, dtype=DTYPE)
         cov[:, :2, :2], cov[:, :2, 2:], cov[:, 2:, :2] = rr, rr / s.dt, rr / s.dt
         cov[:, 2:, 2:] = 2 * rr / s.dt**2
-        self._add(torch.cat([z2, (z2 - z1) / s.dt], dim=-1), cov, confirmed=True, hits=2)
+        self._add(torch.cat([z2, (z2 - z1) / s.dt], dim=-1), cov, confirmed=s.confirm_m <= 2, hits=2)
         keep = torch.ones(z.shape[0], dtype=torch.bool)
         keep[torch.from_numpy(cols)] = False
         self._pending = z[keep]

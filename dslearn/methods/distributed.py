@@ -87,7 +87,6 @@ class DistributedFilter:
             self.learner = natural
             return
         allowed = allowed_learners(self.model, self.observation)
-        name = getattr(self.learner, "name", None)
         if isinstance(self.learner, BackpropLearning):
             self._check_backprop()
             return
@@ -105,12 +104,12 @@ class DistributedFilter:
         if not isinstance(self.learner, (OnlineLearning, OfflineLearning, NoLearning)):
             raise refuse(self.learner, "the distributed filter (filter=default|ukf) takes "
                          "learner=online|offline|none|backprop|calibrate|fg_identification", allowed)
-        if name in allowed:
+        if isinstance(self.learner, allowed_learner_types(self.model, self.observation)):
             return
         model = f"model {self.model_name}"
         if self.model.learns_offline:
             why = f"{model} has no weights until trained offline"
-        elif name == "online":
+        elif isinstance(self.learner, OnlineLearning):
             why = f"{model} learns nothing online, nor does the observation model"
         else:
             why = f"{model} has no offline fit (fit_offline: lstm, social_lstm, sfm_fit)"
@@ -217,7 +216,7 @@ class DistributedFilter:
 
     def fits(self, spec: ScenarioSpec) -> str | None:
         reason = DistributedFilter.spec_misfit(spec)
-        if reason is None and spec.kind == "targets" and getattr(self.fusion, "alone", False) \
+        if reason is None and spec.tracks_targets and getattr(self.fusion, "alone", False) \
                 and self.observation.meas_dim < 2:
             reason = (f"with consensus={self.fusion.name} every node fuses only its own readings; one scalar "
                       f"{spec.measurement} reading per step (observation {type(self.observation).__name__}) does "
@@ -241,15 +240,34 @@ class DistributedFilter:
         if getattr(spec, "labelled", True):
             return (f"associator={self.associator.name} associates unlabelled detections; scenario {spec.name} gives "
                     f"every measurement labelled with its target (associator=labels)")
-        if spec.kind != "targets":
+        if not spec.tracks_targets:
             return f"associator={self.associator.name} associates detections of targets; scenario {spec.name} has " \
                    f"nodes navigating themselves"
         if not self.observation.measures_position:
             return (f"associator={self.associator.name} associates position detections; observation "
                     f"{type(self.observation).__name__} does not measure positions")
-        if self.learner.name in ("backprop", "calibrate"):
+        if self.learner.learns_through_update:
             return (f"learner={self.learner.name} learns through the labelled update; with "
                     f"associator={self.associator.name} use learner=online|offline|none")
+        return self._managed_misfit(spec)
+
+    def _managed_misfit(self, spec: ScenarioSpec) -> str | None:
+        """Managed tracks (targets that enter and leave, :mod:`dslearn.association.multitrack`) are tracked with the
+        motion model as it is: nothing learns along them (learner=none with a model that learns nothing)."""
+        tracks = getattr(self.associator, "tracks", None)
+        if tracks is None or not tracks.manages(spec):
+            return None
+        from dslearn.models.constant_velocity import ConstantVelocity, DampedConstantVelocity
+
+        why = "of targets that enter and leave" if getattr(spec, "births", False) else "(associator.tracks.manage=on)"
+        if not isinstance(self.learner, NoLearning) or self.model.learnable or self.model.learns_offline:
+            return (f"scenario {spec.name} reports unlabelled detections {why}: associator={self.associator.name} "
+                    f"manages the tracks, and nothing learns along managed tracks; it takes learner=none with a motion "
+                    f"model that learns nothing (here model={self.model_name}, learner={self.learner.name})")
+        if not isinstance(self.model, (ConstantVelocity, DampedConstantVelocity)):
+            return (f"scenario {spec.name} reports unlabelled detections {why}: associator={self.associator.name} "
+                    f"manages the tracks and predicts each track alone; it takes a motion model of independent "
+                    f"targets (model=lin|cv_damped), not model={self.model_name}")
         return None
 
     def _init(self, scenario: Scenario, network: SensorNetwork, ctx, fusion: Fusion, obs: ObservationModel):
@@ -274,20 +292,19 @@ class DistributedFilter:
             )
 
         learner = online(model, obs, fusion)
-        kind = self.learner.name
-        if kind == "calibrate":
+        if isinstance(self.learner, CalibrateLearning):
             model, obs = self._calibrate(scenario, network, train, ctx, seed, learner)
             learner = online(model, obs, fusion)  # tracks with the configured fusion and the scaled noises
-        if kind == "backprop":
+        if isinstance(self.learner, BackpropLearning):
             model, obs, fusion = self._backprop(scenario, network, train, ctx, seed, learner)
             learner = online(model, obs, fusion)
-        if kind == "offline":  # supervised: learns from the training episodes' true tracks (once: the fit cache)
+        if self.learner.fits_offline:  # supervised: learns from the training episodes' true tracks (once: the fit cache)
             fit_offline_cached(model, train.states, ctx.dt, seed)
         self._fit_motion(model, train, ctx, seed)
-        if kind in ("online", "offline") and learner.learnable:  # Algorithm 1 (offline: a learning observation model)
+        if self.learner.learns_online and learner.learnable:  # Algorithm 1 (offline: a learning observation model)
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())  # no evaluation at checkpoints
         res = learner.estimate(test)
-        if scenario.spec.kind == "self":  # each node's estimate of its own platform: one report of every platform
+        if scenario.spec.navigates_itself:  # each node's estimate of its own platform: one report of every platform
             return own_estimates(res.mean, res.info, scenario.spec.num_agents)
         return beliefs_to_estimates(res.mean, res.info, network, scenario.spec.num_agents)
 
@@ -297,6 +314,13 @@ class DistributedFilter:
         """:meth:`estimate` with every node associating its own detections (:class:`AssociatingLearner`)."""
         ctx, model, fusion, obs = scenario.ctx(), self.model, self.fusion, self.observation
         a = scenario.spec.num_agents
+        managed = self.associator.network_tracks(scenario, network)
+        if managed is not None:  # targets enter and leave: every node manages its tracks (association.multitrack)
+            why = self._managed_misfit(scenario.spec)
+            if why is not None:
+                raise ConfigError(why)
+            pos, cov = managed.run(test.meas, test.visible, network.adjacency, model, obs, fusion, ctx)
+            return Estimates(pos, cov, list(network.names), network.is_sensor.clone())
         hook = self.associator.make(scenario, network, a)
         start = getattr(scenario, "start_prior", None)
         if not callable(start):
@@ -308,10 +332,10 @@ class DistributedFilter:
             return associated_belief(ep, fusion, prior, hook, obs)
         learner = AssociatingLearner(network, model, obs, fusion, ctx, init=init, predict_step=self.predict,
                                      learn_gate_std=self.learn_gate_std, associate=hook)
-        if self.learner.name == "offline":
+        if self.learner.fits_offline:
             fit_offline_cached(model, train.states, ctx.dt, seed)
         self._fit_motion(model, train, ctx, seed)
-        if self.learner.name in ("online", "offline") and learner.learnable:
+        if self.learner.learns_online and learner.learnable:
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
         res = learner.estimate(test)
         return beliefs_to_estimates(res.mean, res.info, network, a)
@@ -350,16 +374,22 @@ def natural_learner(model: MotionModel, observation: ObservationModel):
     return NoLearning()
 
 
-def allowed_learners(model: MotionModel, observation: ObservationModel) -> tuple[str, ...]:
-    """The learners the distributed filter can use with these parts (the natural one first)."""
-    bp = ("backprop",) if backprop_misfit(model, observation) is None else ()
-    bp += ("calibrate",) if calibrate_misfit(observation, fit=("q",)) is None else ()
-    bp += ("fg_identification",) if FactorGraphIdentification.motion_misfit(model) is None else ()
+def allowed_learner_types(model: MotionModel, observation: ObservationModel) -> tuple[type, ...]:
+    """The learners (their classes) the distributed filter can use with these parts (the natural one first)."""
+    bp = (BackpropLearning,) if backprop_misfit(model, observation) is None else ()
+    bp += (CalibrateLearning,) if calibrate_misfit(observation, fit=("q",)) is None else ()
+    bp += (FactorGraphIdentification,) if FactorGraphIdentification.motion_misfit(model) is None else ()
     if model.learns_offline:
-        return ("offline", *bp)
+        return (OfflineLearning, *bp)
     if model.learnable or observation.learnable:
-        return ("online", "none", *bp)
-    return ("none", *bp)
+        return (OnlineLearning, NoLearning, *bp)
+    return (NoLearning, *bp)
+
+
+def allowed_learners(model: MotionModel, observation: ObservationModel) -> tuple[str, ...]:
+    """The learners the distributed filter can use with these parts, by their config names (the natural one
+    first)."""
+    return tuple(c.name for c in allowed_learner_types(model, observation))
 
 
 def backprop_misfit(model: MotionModel, observation: ObservationModel, predict=None, model_name: str | None = None) -> str | None:
@@ -369,7 +399,7 @@ def backprop_misfit(model: MotionModel, observation: ObservationModel, predict=N
     if not isinstance(observation, LinearPositionObservation):
         return (f"learner=backprop learns the linear position sensor's R (observation=linear), not observation "
                 f"{type(observation).__name__}")
-    why = motion_misfit(model, getattr(predict, "name", "ekf"))
+    why = motion_misfit(model, predict)
     if why is not None:
         return f"learner=backprop supports model={'|'.join(SUPPORTED_MODELS)} with observation=linear, not {name}: {why}"
     return None

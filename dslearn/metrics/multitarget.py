@@ -237,13 +237,26 @@ MATRIX_CUTOFF = 2.0
 MATRIX_ORDER = 2.0
 
 
+def present(points: Tensor) -> Tensor:
+    """Which slots of a padded set hold a point: ``(..., d) -> (...)`` bool, False where a coordinate is ``NaN`` (an
+    absent target or track)."""
+    return ~torch.as_tensor(points).isnan().any(-1)
+
+
 def matched_order(est: Tensor, truth: Tensor) -> Tensor:
     """The track matched to each target over a whole episode, ``(*N, B, A)`` int64: per reporting node and
     episode, the optimal assignment (SciPy's) of tracks to targets minimising the summed squared distances over the
-    steps ``1..K``. ``est (*N, B, K+1, M, 2)`` (``M >= A``), ``truth (B, K+1, A, 2)``."""
+    steps ``1..K``. ``est (*N, B, K+1, M, 2)`` (``M >= A``), ``truth (B, K+1, A, 2)``; with absent targets or tracks
+    (``NaN``, :func:`present`) a step adds the squared distance where both are present, :data:`MATRIX_CUTOFF` squared
+    where the target is and the track is not, nothing where the target is absent."""
     e = est.detach().to("cpu", torch.float64)
     x = truth.detach().to("cpu", torch.float64)
-    cost = ((x[:, 1:, :, None] - e[..., 1:, None, :, :]) ** 2).sum(-1).sum(-3)  # (*N, B, A, M)
+    sq = ((x[:, 1:, :, None] - e[..., 1:, None, :, :]) ** 2).sum(-1)  # (*N, B, K, A, M)
+    if bool(sq.isnan().any()):  # absent targets or tracks (NaN): a present target without the track costs c^2
+        tp = present(x[:, 1:])[:, :, :, None]  # (B, K, A, 1)
+        ep = present(e[..., 1:, :, :])[..., None, :]  # (*N, B, K, 1, M)
+        sq = torch.where(tp & ep, sq.nan_to_num(0.0), torch.where(tp, MATRIX_CUTOFF**2, 0.0))
+    cost = sq.sum(-3)  # (*N, B, A, M)
     flat = cost.reshape(-1, *cost.shape[-2:]).numpy()
     out = np.zeros((flat.shape[0], cost.shape[-2]), dtype=np.int64)
     for i, c in enumerate(flat):
@@ -257,15 +270,50 @@ def tracking_metrics(est: Tensor, truth: Tensor, c: float = MATRIX_CUTOFF, p: fl
     ``1..K``: ``gospa`` and its parts ``gospa_loc``, ``gospa_missed``, ``gospa_false`` (:func:`gospa`, their
     means over the steps), ``ospa`` (:func:`ospa`, mean), and the identity errors of the sequence
     (:func:`identity_metrics`, match distance ``c``): ``id_switches``, ``fragmentations``. ``est (N, B, K+1, M,
-    2)`` every node's tracks, ``truth (B, K+1, A, 2)``."""
+    2)`` every node's tracks, ``truth (B, K+1, A, 2)``; a ``NaN`` position is an absent target or track (a target
+    outside its existence interval, a slot without a confirmed track, :func:`present`): the sets then vary in
+    cardinality from step to step."""
     e = est.detach().to("cpu", torch.float64)[:, :, 1:]
     x = truth.detach().to("cpu", torch.float64)[:, 1:].expand(e.shape[0], *truth.shape[:1], truth.shape[1] - 1,
                                                             *truth.shape[2:])
-    g = gospa(x, e, c, p)
-    o = ospa(x, e, c, p)
-    ids = identity_metrics(x, e, c)
+    masks = {}
+    if bool(e.isnan().any() or x.isnan().any()):  # sets of varying cardinality: NaN = absent (births, deaths)
+        masks = dict(truth_mask=present(x), est_mask=present(e))
+        x, e = x.nan_to_num(0.0), e.nan_to_num(0.0)
+    g = gospa(x, e, c, p, **masks)
+    o = ospa(x, e, c, p, **masks)
+    ids = identity_metrics(x, e, c, **masks)
     out = {k: v.mean(-1) for k, v in g.items()}
     out["ospa"] = o["ospa"].mean(-1)
     out["id_switches"] = ids["id_switches"].to(torch.float64)
     out["fragmentations"] = ids["fragmentations"].to(torch.float64)
+    return out
+
+
+def matched_position_metrics(mean: Tensor, cov: Tensor | None, truth: Tensor) -> dict[str, Tensor]:
+    r"""``rmse``, ``pos_err`` and (with ``cov``) ``nees_pos`` of the track matched to each target over the episode
+    (:func:`matched_order`), per reporting node and episode ``{name: (N, B)}``, over the steps ``1..K`` and the
+    (step, target) pairs where both the target and its matched track are present (a ``NaN`` position is absent,
+    :func:`present`): what :func:`dslearn.metrics.positions.position_metrics` computes on the matched tracks, for sets
+    of varying cardinality (births and deaths); ``nees_pos`` is the mean over those steps of
+    :math:`\sum_a e^T P^{-1} e / (2 n_t)`, ``n_t`` the pairs present at the step. ``NaN`` where a node never holds a
+    matched track. ``mean (N, B, K+1, M, 2)``, ``cov (N, B, K+1, M, 2, 2)`` or None, ``truth (B, K+1, A, 2)``."""
+    idx = matched_order(mean, truth)  # (N, B, A)
+    steps = mean.shape[2]
+    gi = idx[:, :, None, :, None].expand(-1, -1, steps, -1, 2).to(mean.device)
+    m = mean.gather(-2, gi)[:, :, 1:].to(torch.float64)  # (N, B, K, A, 2)
+    x = truth[:, 1:].unsqueeze(0).to(m)
+    both = present(m) & present(x)  # (N, B, K, A)
+    err = (m - x).nan_to_num(0.0)
+    sq = err.pow(2).sum(-1) * both
+    n = both.sum((-1, -2)).to(torch.float64)
+    out = {"rmse": (sq.sum((-1, -2)) / n).sqrt(), "pos_err": (sq.sqrt() * both).sum((-1, -2)) / n}
+    if cov is not None:
+        c = cov.gather(-3, gi.unsqueeze(-1).expand(*gi.shape, 2))[:, :, 1:].to(torch.float64)
+        c = torch.where(both[..., None, None], c, torch.eye(2, dtype=torch.float64))
+        e = err.unsqueeze(-1)
+        d2 = (e.transpose(-1, -2) @ torch.linalg.solve(c, e)).squeeze(-1).squeeze(-1) * both  # (N, B, K, A)
+        nt = both.sum(-1)  # (N, B, K)
+        per_step = d2.sum(-1) / (2 * nt.clamp(min=1))
+        out["nees_pos"] = (per_step * (nt > 0)).sum(-1) / (nt > 0).sum(-1)
     return out

@@ -3,7 +3,16 @@ detections without target labels, some targets missed and clutter among them.
 
 Each sensor detects each target inside its sensing range with probability :math:`P_D` (``p_detect``), the
 detection its noisy position (as in :func:`~dslearn.sim.scenario.measure`), and adds a Poisson number of false
-detections (rate ``clutter_rate`` per sensor and step) uniform over its sensing disc. The detections of a sensor
+detections (rate ``clutter_rate`` per sensor and step) uniform over its sensing disc.
+
+With ``births`` (off by default: every target exists throughout) each target exists over an interval of steps
+drawn per episode (:func:`existence_intervals`): it enters at a step drawn uniformly in ``0 .. birth_until * K``
+and leaves at one drawn uniformly in ``death_from * K .. K + 1`` (``K + 1``: it stays to the end). Outside its
+interval a target is not detected and is not in the truth: its true state is ``NaN`` (what
+:meth:`ClutterScenario.positions` reports and :func:`dslearn.metrics.multitarget.tracking_metrics` reads as an absent
+target). The walkers are simulated throughout (an absent walker still moves, unseen, in the social force of the
+others: a simulation shortcut). The spec declares it (``births=True``, :class:`DetectionSpec`), and a tracker
+then manages its tracks (``associator.tracks``). The detections of a sensor
 and step are one padded set in a random order (``meas (S, B, K+1, M, 2)``, ``visible`` the present slots,
 ``M = A + n_max`` with ``n_max`` the Poisson quantile of :data:`CLUTTER_TAIL`): nothing in a slot tells whose
 detection it is. The spec says so (``labelled=False``): a method needs an associator (``associator=``).
@@ -15,6 +24,8 @@ import math
 import torch
 from scipy.stats import poisson
 from torch import Tensor
+
+from dataclasses import dataclass
 
 from dslearn.episodes import Episodes, ScenarioSpec
 from dslearn.errors import ConfigError, _number, check_positive
@@ -83,6 +94,41 @@ def detections(pos_meas: Tensor, visible: Tensor, network: SensorNetwork, p_dete
     return vals.to(dtype), present
 
 
+@dataclass(frozen=True)
+class DetectionSpec(ScenarioSpec):
+    """A :class:`~dslearn.episodes.ScenarioSpec` of unlabelled detections that also declares whether targets enter
+    and leave (``births``: each target exists over an interval of steps; a tracker must start and end tracks)."""
+
+    births: bool = False
+
+
+def check_births(births, birth_until, death_from) -> tuple[bool, float, float]:
+    """``births`` a bool, ``birth_until`` in [0, 1), ``death_from`` in (``birth_until``, 1]; else
+    :class:`ConfigError` naming the field."""
+    if not isinstance(births, bool):
+        raise ConfigError(f"scenario.births={births!r} must be true or false")
+    lo, hi = _number("scenario.birth_until", birth_until), _number("scenario.death_from", death_from)
+    if not 0 <= lo < 1:
+        raise ConfigError(f"scenario.birth_until={birth_until!r} must be in [0, 1) (a share of the horizon)")
+    if not lo < hi <= 1:
+        raise ConfigError(f"scenario.death_from={death_from!r} must be in (scenario.birth_until={lo}, 1] (a share of "
+                          f"the horizon)")
+    return births, lo, hi
+
+
+def existence_intervals(u: Tensor, steps: int, birth_until: float, death_from: float) -> Tensor:
+    """``alive (B, K+1, A)`` bool from uniforms ``u (B, A, 2)``: target ``a`` enters at step
+    ``floor(u0 * (floor(birth_until K) + 1))`` and leaves at ``ceil(death_from K) + floor(u1 * (K + 2 -
+    ceil(death_from K)))`` (``K + 1``: it stays), present at the steps in between (its first included)."""
+    first_max = int(math.floor(birth_until * steps))
+    last_min = min(int(math.ceil(death_from * steps)), steps + 1)
+    birth = (u[..., 0] * (first_max + 1)).floor().clamp(max=first_max).long()  # (B, A)
+    death = last_min + (u[..., 1] * (steps + 2 - last_min)).floor().clamp(max=steps + 1 - last_min).long()
+    death = torch.maximum(death, birth + 1)
+    k = torch.arange(steps + 1, device=u.device).view(1, -1, 1)
+    return (k >= birth.unsqueeze(1)) & (k < death.unsqueeze(1))
+
+
 class ClutterScenario(SocialForceScenario):
     r"""Yu's crowd (:class:`~dslearn.sim.scenario.SocialForceScenario`) seen as unlabelled detections
     (:func:`detections`): ``p_detect`` :math:`P_D \in (0, 1]`, ``clutter_rate`` (>= 0, false detections per sensor
@@ -94,16 +140,22 @@ class ClutterScenario(SocialForceScenario):
     """
 
     def __init__(self, *args, p_detect: float = 0.9, clutter_rate: float = 1.0, start_velocity_std: float = 1.0,
-                 name: str = "yu_crowd_clutter", **kwargs):
+                 name: str = "yu_crowd_clutter", births: bool = False, birth_until: float = 0.4,
+                 death_from: float = 0.6, **kwargs):
         super().__init__(*args, **kwargs)
         self.p_detect, self.clutter_rate = check_detection(p_detect, clutter_rate)
+        self.births, self.birth_until, self.death_from = check_births(births, birth_until, death_from)
         check_positive("scenario.start_velocity_std", start_velocity_std)
         self.start_velocity_std = float(start_velocity_std)
         self.name = str(name)
 
     @property
     def spec(self) -> ScenarioSpec:
-        """As Yu's scenario's, named ``name``, with unlabelled detections (``labelled=False``)."""
+        """As Yu's scenario's, named ``name``, with unlabelled detections (``labelled=False``); with ``births`` a
+        :class:`DetectionSpec` that declares them."""
+        if self.births:
+            return DetectionSpec(self.name, "position", self.num_agents, "pv2d", self.dt, self.steps,
+                                 dynamics="social_force", labelled=False, births=True)
         return ScenarioSpec(self.name, "position", self.num_agents, "pv2d", self.dt, self.steps,
                             dynamics="social_force", labelled=False)
 
@@ -122,6 +174,19 @@ class ClutterScenario(SocialForceScenario):
 
     def sample(self, num: int, network: SensorNetwork, generator: torch.Generator | Streams) -> Episodes:
         ep = super().sample(num, network, generator)
-        meas, present = detections(ep.meas, ep.visible, network, self.p_detect, self.clutter_rate, generator)
-        return Episodes(ep.states, meas, present)
+        if not self.births:
+            meas, present = detections(ep.meas, ep.visible, network, self.p_detect, self.clutter_rate, generator)
+            return Episodes(ep.states, meas, present)
+        alive = self.existence(num, generator).to(ep.visible.device)  # (B, K+1, A)
+        meas, present = detections(ep.meas, ep.visible & alive.unsqueeze(0), network, self.p_detect,
+                                   self.clutter_rate, generator)
+        gone = (~alive).repeat_interleave(4, dim=-1)  # (B, K+1, 4A)
+        states = ep.states.masked_fill(gone.to(ep.states.device), math.nan)
+        return Episodes(states, meas, present)
+
+    def existence(self, num: int, generator) -> Tensor:
+        """Each target's existence over the steps, ``alive (B, K+1, A)`` (:func:`existence_intervals`), drawn after
+        the walk and its readings (from each episode's stream, after the detections' draws)."""
+        u = rand((num, self.num_agents, 2), generator, dtype=torch.float64)
+        return existence_intervals(u, self.steps, self.birth_until, self.death_from)
 

@@ -38,7 +38,7 @@ import torch
 from dslearn.episodes import Scenario
 from dslearn.errors import ConfigError
 from dslearn.methods.base import Method
-from dslearn.metrics.multitarget import matched_order, tracking_metrics
+from dslearn.metrics.multitarget import matched_order, matched_position_metrics, tracking_metrics
 from dslearn.metrics.positions import position_metrics
 from dslearn.metrics.rows import node_rows
 from dslearn.network import SensorNetwork
@@ -147,8 +147,11 @@ class MatrixCell:
         truth = scenario.positions(test.states)
         if getattr(spec, "labelled", True):
             metrics = position_metrics(est, truth)
-        else:  # unlabelled detections: the track matched to each target, and the multi-target metrics
-            metrics = position_metrics(matched_estimates(est, truth), truth)
+        elif bool(torch.isfinite(truth).all()):  # unlabelled detections: the track matched to each target, and
+            metrics = position_metrics(matched_estimates(est, truth), truth)  # the multi-target metrics
+            metrics.update(tracking_metrics(est.mean, truth))
+        else:  # targets that enter and leave (a NaN position: absent): over the steps where target and track exist
+            metrics = matched_position_metrics(est.mean, est.cov, truth)
             metrics.update(tracking_metrics(est.mean, truth))
         kinds = ["sensor" if bool(s) else "comm" for s in est.sensing]
         keys = dict(seed=int(seed), method=method.label, scenario=spec.name, units=spec.units,
