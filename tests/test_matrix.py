@@ -233,7 +233,12 @@ def _jobs(experiment, judge=True):
         assert multirun and master.hydra.sweeper._target_.endswith("MatrixSweeper")
         if not judge:
             return combos, None, None
-        kept, records = select_cells(combos, lambda ov: compose("config", overrides=list(ov)))
+        # the app's cache of compositions (each preset and each scenario composed once: the up-front check's;
+        # test_the_sweeper_takes_the_up_front_checks_judgement holds it to Hydra's own composition)
+        from dslearn.app.composer import composed_job, sweep_composer
+
+        composer = sweep_composer(combos, lambda ov: compose("config", overrides=list(ov)))
+        kept, records = select_cells(combos, lambda ov: composed_job(composer, ov))
         ov = [dict(x.split("=") for x in c if not x.startswith("experiment=")) for c in combos]
         scen = {s: build(compose("config", overrides=["task=matrix", f"scenario={s}"]).scenario, "scenario")
                 for s in {o["scenario"] for o in ov}}
@@ -447,3 +452,25 @@ def test_experiment_matrix_left_out_entries_name_its_own_presets_and_scenarios()
     scenarios = {x.strip() for x in params["scenario"].split(",")}
     entries = exp["task"]["left_out"]
     assert entries and all(e["method"] in methods and set(e["scenarios"]) <= scenarios and e["why"] for e in entries)
+
+
+def test_the_sweeper_takes_the_up_front_checks_judgement(tmp_path):
+    """dslearn-run's up-front check judges a matrix sweep's combinations once (each preset and scenario composed
+    once, each cell built once on the meta device) and the matrix sweeper takes that judgement for the same
+    combinations instead of judging them again; taken once, and none for other combinations; the cells it
+    judged are those Hydra's own composition of each combination gives."""
+    from dslearn.app.precheck import precheck
+    from dslearn.schemas import matrix
+
+    argv = ["experiment=matrix_small", "method=ekf_lin_hybrid,dgpt_rbcm", "scenario=yu_two_agents,jiang",
+            "task.train_episodes=2", f"hydra.sweep.dir={tmp_path / 'sweep'}"]
+    assert precheck(argv) is None
+    assert len(matrix._JUDGED) == 1
+    (select, combos), judged = next(iter(matrix._JUDGED.items()))
+    assert select is matrix.select_cells and len(combos) == 4
+    with initialize_config_dir(config_dir=CONF, version_base=None):
+        plain = matrix.select_cells([list(c) for c in combos], lambda ov: compose("config", overrides=list(ov)))
+    assert judged == plain  # the cached compositions judge as Hydra's own do
+    assert matrix.take_judgement(select, [list(c) for c in combos[:3]]) is None  # other combinations: none
+    assert matrix.take_judgement(select, [list(c) for c in combos]) is judged
+    assert matrix.take_judgement(select, [list(c) for c in combos]) is None  # once

@@ -46,23 +46,30 @@ class _Composer:
         return self._full[groups]
 
     def config(self, varying: list, all_lines: list[str]) -> DictConfig:
-        """The (cached, shared: do not modify) config of a job's group choices."""
+        """The (cached, shared: do not modify) config of a job's group choices.
+
+        The choices that change only their own group's node (a scenario) are swapped into the composition of the
+        others (a method preset, which sets several groups: composed once per preset with the shared choices), where
+        those others leave that node as the shared choices have it; anything else is composed in full."""
         key = tuple(all_lines)
         if key in self._jobs:
             return self._jobs[key]
         base = self.full(self.base)
-        swaps = []
+        swaps, whole = [], []
         for line, o in varying:
             node = self._swap(base, line, o)
             if node is None:
-                self._jobs[key] = self.full(key)
-                return self._jobs[key]
-            swaps.append(node)
+                whole.append(line)
+            else:
+                swaps.append(node)
+        start = self.full(self.base + tuple(whole)) if whole else base
+        if whole and not all(key_equal(base, start, k) for k, _ in swaps):
+            start, swaps = self.full(key), []  # the other choices touch a swapped node too: compose it whole
         if not swaps:
-            cfg = base
+            cfg = start
         else:
-            # copy the base without the nodes about to be replaced, then put the options' nodes in
-            cfg = _copy_without(base, {k for k, _ in swaps})
+            # copy the start without the nodes about to be replaced, then put the options' nodes in
+            cfg = _copy_without(start, {k for k, _ in swaps})
             with _open(cfg):
                 for k, value in swaps:
                     if value is not None:
@@ -187,11 +194,44 @@ def sweep_combinations(argv: list[str]) -> tuple[list[list[str]], bool, DictConf
     return combos, True, master
 
 
-def check_jobs(combos: list[list[str]], compose, visit=None) -> tuple[int, int]:
+def _lines(combo) -> tuple[list, list]:
+    """A job's override lines split into group choices ``(line, override)`` and value overrides."""
+    groups, values = [], []
+    for line, o in zip(combo, _parse_all(list(combo))):
+        if _is_group_override(o):
+            groups.append((line, o))
+        else:
+            values.append(o)
+    return groups, values
+
+
+def sweep_composer(combos: list[list[str]], compose) -> _Composer:
+    """One cache of compositions for the jobs of a sweep (:class:`_Composer`, its shared group choices those of
+    every job): the sweeper's choice of cells and :func:`check_jobs` share it, so a cell is composed once."""
+    split = [_lines(c)[0] for c in combos]
+    constant = [g for g in split[0] if all(g[0] in {x[0] for x in s} for s in split)] if split else []
+    return _Composer(compose, tuple(g[0] for g in constant))
+
+
+def composed_job(composer: _Composer, combo) -> DictConfig:
+    """A job's whole configuration through ``composer`` (its own copy where value overrides apply; else the
+    shared composition: do not modify)."""
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+
+    groups, values = _lines(combo)
+    cfg = composer.config([g for g in groups if g[0] not in composer.base], [g[0] for g in groups])
+    if values:
+        cfg = copy.deepcopy(cfg)
+        ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
+    return cfg
+
+
+def check_jobs(combos: list[list[str]], compose, visit=None, composer: _Composer | None = None) -> tuple[int, int]:
     """Validate every job's configuration; ConfigError naming the job on the first bad one.
     ``compose(overrides)`` composes one configuration (Hydra's ``compose``); ``visit(cfg)``
     (default :func:`validate_job`) is called with each job's configuration, which is only valid
     during the call, and with the job's override lines as ``lines=`` where it takes them.
+    ``composer``: a cache already holding compositions of these jobs (:func:`sweep_composer`).
     Returns ``(jobs checked, full compositions made)``."""
     import inspect
 
@@ -222,9 +262,10 @@ def check_jobs(combos: list[list[str]], compose, visit=None) -> tuple[int, int]:
             else:
                 values.append(o)
         split.append((groups, values, where))
-    constant = [g for g in split[0][0] if all(g[0] in {x[0] for x in s[0]} for s in split)] if split else []
-    composer = _Composer(compose, tuple(g[0] for g in constant))
-    const_lines = {g[0] for g in constant}
+    if composer is None:
+        constant = [g for g in split[0][0] if all(g[0] in {x[0] for x in s[0]} for s in split)] if split else []
+        composer = _Composer(compose, tuple(g[0] for g in constant))
+    const_lines = set(composer.base)
     for (groups, values, where), combo in zip(split, combos):
         cfg = None
         job_visit = (lambda c, _lines=list(combo): visit(c, lines=_lines)) if takes_lines else visit

@@ -13,7 +13,14 @@ from typing import TYPE_CHECKING
 from omegaconf import DictConfig, OmegaConf
 
 from dslearn.app.common import CONF_DIR, PRELOCKED
-from dslearn.app.composer import check_jobs, sweep_combinations, sweep_select, validate_job
+from dslearn.app.composer import (
+    check_jobs,
+    composed_job,
+    sweep_combinations,
+    sweep_composer,
+    sweep_select,
+    validate_job,
+)
 from dslearn.app.options import (
     _NO_CHECK_FLAGS,
     _check_group_option,
@@ -96,16 +103,24 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
                 return seeded.pop(key) if key in seeded else compose("config", overrides=[*search_overrides(), *ov])
 
             select = sweep_select(master) if multirun else None
+            composer = None
             if select is not None:  # the sweeper's choice (the matrix: the cells that fit); the others are no jobs
-                composed = {}
+                composer = sweep_composer(combos, _compose)  # each preset and each scenario composed once, and
+                # each combination once for both checks
 
-                def _compose(ov, _plain=_compose):  # each combination composed once for both checks
-                    key = tuple(ov)
-                    if key not in composed:
-                        composed[key] = _plain(ov)
-                    return composed[key]
+                def _cell(ov, _plain=_compose):
+                    try:
+                        return composed_job(composer, ov)
+                    except ConfigError:
+                        raise
+                    except Exception:  # noqa: BLE001 - a composition error: Hydra's own message, as a run has it
+                        return _plain(ov)
 
-                combos = select(combos, _compose)[0]
+                judged = select(combos, _cell)
+                from dslearn.schemas.matrix import remember_judgement
+
+                remember_judgement(select, combos, judged)  # the sweeper takes it instead of judging again
+                combos = judged[0]
 
             def _visit(cfg, lines=()):
                 validate_job(cfg, lines)
@@ -114,7 +129,7 @@ def precheck(argv: list[str], plan: dict | None = None) -> str | None:
                     if where is not None:
                         plan["run_dir"] = where
 
-            check_jobs(combos, _compose, visit=_visit)
+            check_jobs(combos, _compose, visit=_visit, composer=composer)
             if plan is not None and multirun:  # the sweep's job count: its overall status line counts to it
                 plan["jobs"] = len(combos)
     except ConfigError as e:

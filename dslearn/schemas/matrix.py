@@ -219,6 +219,22 @@ STATUSES = ("run", "does_not_fit", "left_out", "failed")
 #: exits 1 after the sweep where there are any)
 FAILED_CELLS: list[dict] = []
 
+#: the up-front check's judgement of a sweep's combinations (its ``select`` function's result), which the matrix
+#: sweeper takes for the same combinations instead of judging them again: a cell is composed and built once per run
+_JUDGED: dict[tuple, tuple] = {}
+
+
+def remember_judgement(select, combos, judged) -> None:
+    """Keep the judgement ``select(combos, ...)`` returned (only the latest: one sweep per run)."""
+    _JUDGED.clear()
+    _JUDGED[(select, tuple(tuple(c) for c in combos))] = judged
+
+
+def take_judgement(select, combos):
+    """The judgement :func:`remember_judgement` kept for these combinations and this ``select``, once; ``None``
+    where there is none (the up-front check did not run, or judged other combinations)."""
+    return _JUDGED.pop((select, tuple(tuple(c) for c in combos)), None)
+
 
 def _scenario_key(cfg: DictConfig) -> str:
     """The scenario node of ``cfg`` resolved (what :func:`dslearn.compose.build_scenario` builds from)."""

@@ -96,7 +96,15 @@ class MatrixSweeper(BasicSweeper):
 
         add_search_path(self.config.hydra.get("searchpath") or [])  # the user's folders: their options count too
         loader = self.hydra_context.config_loader
-        kept, records = get_object(self.select)(combos, lambda ov: loader.load_sweep_config(self.config, ov))
+        select = get_object(self.select)
+        from dslearn.schemas.matrix import take_judgement
+
+        judged = take_judgement(select, combos)  # dslearn-run's up-front check judged these combinations already
+        if judged is None:
+            judged = select(combos, lambda ov: loader.load_sweep_config(self.config, ov))
+        else:
+            log.debug("matrix sweeper: the cells as the up-front check judged them (no composition again)")
+        kept, records = judged
         self._composed = {tuple(c) for c in kept}
         sweep_dir = Path(str(self.config.hydra.sweep.dir))
         write_records(sweep_dir, records)
