@@ -49,7 +49,7 @@ from torch import Tensor
 
 from dslearn.association.base import DTYPE
 from dslearn.association.gating import check_probability
-from dslearn.association.tracks import INITIATIONS, TrackManager, TrackManagerSettings
+from dslearn.association.tracks import INITIATIONS, TrackManager, TrackManagerSettings, check_track_counts
 from dslearn.errors import ConfigError, check_choice, check_positive
 from dslearn.types import AGENT_DIM, safe_cholesky, symmetrize
 
@@ -81,13 +81,7 @@ class TrackSettings:
             raise ConfigError(f"associator.tracks.adopt={self.adopt!r} must be true or false")
         check_choice("associator.tracks.manage", self.manage, MANAGE)
         check_choice("associator.tracks.initiation", self.initiation, INITIATIONS)
-        for name in ("confirm_m", "confirm_n", "delete_after"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ConfigError(f"associator.tracks.{name}={v!r} must be an integer >= 1")
-        if self.confirm_m > self.confirm_n:
-            raise ConfigError(f"associator.tracks.confirm_m={self.confirm_m} must be <= "
-                              f"associator.tracks.confirm_n={self.confirm_n}")
+        check_track_counts("associator.tracks.", self.confirm_m, self.confirm_n, self.delete_after)
         for name in ("max_speed", "velocity_std"):
             if getattr(self, name) is not None:
                 check_positive(f"associator.tracks.{name}", getattr(self, name))

@@ -38,6 +38,16 @@ from dslearn.types import AGENT_DIM
 INITIATIONS = ("two_point", "single_point")
 
 
+def check_track_counts(prefix: str, confirm_m, confirm_n, delete_after) -> None:
+    """M-of-N confirmation and deletion counts: integers >= 1 with ``confirm_m <= confirm_n``; a
+    :class:`ConfigError` naming ``<prefix><key>`` otherwise."""
+    for name, v in (("confirm_m", confirm_m), ("confirm_n", confirm_n), ("delete_after", delete_after)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ConfigError(f"{prefix}{name}={v!r} must be an integer >= 1")
+    if confirm_m > confirm_n:
+        raise ConfigError(f"{prefix}confirm_m={confirm_m} must be <= {prefix}confirm_n={confirm_n}")
+
+
 @dataclass(frozen=True)
 class TrackManagerSettings:
     """Track management settings (the ``associator`` slot's ``tracks``), checked when built."""
@@ -52,12 +62,7 @@ class TrackManagerSettings:
 
     def __post_init__(self):
         check_choice("tracks.initiation", self.initiation, INITIATIONS)
-        for name in ("confirm_m", "confirm_n", "delete_after"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ConfigError(f"tracks.{name}={v!r} must be an integer >= 1")
-        if self.confirm_m > self.confirm_n:
-            raise ConfigError(f"tracks.confirm_m={self.confirm_m} must be <= tracks.confirm_n={self.confirm_n}")
+        check_track_counts("tracks.", self.confirm_m, self.confirm_n, self.delete_after)
         check_positive("tracks.max_speed", self.max_speed)
         check_positive("tracks.dt", self.dt)
         if self.velocity_std is not None:
