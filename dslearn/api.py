@@ -72,14 +72,6 @@ def yu_study(model: str = "gp", consensus: str = "hybrid", **options: Any):
 
 def run(*overrides: str, diagnostics=None):
     """Run any task as ``dslearn-run <overrides>`` would (one job, no output folder); its result table."""
-    import inspect
+    from dslearn.compose import build_study as _build
 
-    from dslearn.app.record import resolve_entry
-
-    cfg = compose(*overrides)
-    if "_target_" in cfg.task:
-        from dslearn.compose import build_study as _build
-
-        return _build(cfg).run(diagnostics=diagnostics)
-    fn = resolve_entry(cfg.task.entry)
-    return fn(cfg, diagnostics=diagnostics) if "diagnostics" in inspect.signature(fn).parameters else fn(cfg)
+    return _build(compose(*overrides)).run(diagnostics=diagnostics)

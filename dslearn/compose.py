@@ -163,14 +163,11 @@ def build_predict(cfg: DictConfig):
 
 def build_parts(cfg: DictConfig, model_node: Any = None) -> Parts:
     """Scenario, network (first: connectivity is checked before anything else is built), motion
-    and observation models, fusion and the filter's prediction step of ``cfg``."""
-    dtype, device = resolve_dtype(cfg.dtype), resolve_device(cfg.device)
-    scenario = build_scenario(cfg)
-    network = build_network(cfg)
-    model = build_motion_model(cfg.model if model_node is None else model_node, scenario, network, dtype, device)
-    obs = build_observation(cfg.observation, network, dtype, device)
-    fusion = build_fusion(cfg.consensus, network)
-    return Parts(scenario, network, model, obs, fusion, build_predict(cfg), dtype, device)
+    and observation models, fusion and the filter's prediction step of ``cfg`` (the run's slots, :data:`SLOTS`)."""
+    s = _Slots(cfg)
+    dtype, device, scenario, network = s["dtype"], s["device"], s["scenario"], s["network"]
+    model = s["model"] if model_node is None else build_motion_model(model_node, scenario, network, dtype, device)
+    return Parts(scenario, network, model, s["observation"], s["fusion"], s["predict"], dtype, device)
 
 
 def group_options(group: str, names, overrides: tuple[str, ...] = ()) -> dict[str, DictConfig]:
@@ -214,11 +211,12 @@ def _data_settings(cfg: DictConfig):
 
 
 class _Slots:
-    """The objects of one run, each built once on first use (the network before the models that need
-    its size; the scenario before the parts sized by it)."""
+    """The objects of one run (:data:`SLOTS`), each built once on first use (the network before the models that
+    need its size; the scenario before the parts sized by it). A ``device`` given replaces the run's: ``meta``
+    builds every part with its shapes only (no memory, no numbers), for the up-front checks."""
 
-    def __init__(self, cfg: DictConfig):
-        self.cfg, self._built = cfg, {}
+    def __init__(self, cfg: DictConfig, device: torch.device | None = None):
+        self.cfg, self._built = cfg, ({} if device is None else {"device": torch.device(device)})
 
     def __getitem__(self, name: str) -> Any:
         if name not in self._built:
@@ -280,15 +278,18 @@ def _fusion_factory(cfg: DictConfig, s: "_Slots"):
     return lambda network: build_fusion(node, network)
 
 
-def method_takes(cfg: DictConfig) -> tuple[str, ...]:
-    """The parts the method of ``cfg.filter`` takes (its engine's parameters among ``model``,
-    ``observation``, ``fusion``, ``learner``, ``associator``), named by their root groups (``fusion`` is the ``consensus`` group)."""
-    import inspect
-
+def _engine_params(cfg: DictConfig):
+    """The parameters of the method ``cfg.filter`` makes (its ``_target_``: the engine)."""
     target = cfg.filter.get("_target_")
     if not target:
         raise ConfigError("filter has no _target_ (the method its engine makes)")
-    params = inspect.signature(import_object(target, "filter._target_")).parameters
+    return inspect.signature(import_object(target, "filter._target_")).parameters
+
+
+def method_takes(cfg: DictConfig) -> tuple[str, ...]:
+    """The parts the method of ``cfg.filter`` takes (its engine's parameters among ``model``,
+    ``observation``, ``fusion``, ``learner``, ``associator``), named by their root groups (``fusion`` is the ``consensus`` group)."""
+    params = _engine_params(cfg)
     group = {"model": "model", "observation": "observation", "fusion": "consensus", "learner": "learner",
              "associator": "associator"}
     return tuple(g for p, g in group.items() if p in params)
@@ -317,9 +318,7 @@ def _method(cfg: DictConfig, s: "_Slots"):
         "dtype": lambda: dtype,
         "device": lambda: dev,
     }
-    import inspect
-
-    params = inspect.signature(import_object(cfg.filter._target_, "filter._target_")).parameters
+    params = _engine_params(cfg)
     made = build(cfg.filter, "filter", **{k: make() for k, make in makers.items() if k in params})
     return made() if isinstance(made, functools.partial) else made  # an engine that takes no run-time part
 
@@ -328,9 +327,7 @@ def build_cell_parts(cfg: DictConfig, check_only: bool = False):
     """The scenario, its sensors and the method of a matrix cell (``task=matrix``); a method that does not
     fit the scenario is refused with the reason (with ``check_only``: on PyTorch's meta device, so no
     memory is used and no random draw of the run is consumed)."""
-    slots = _Slots(cfg)
-    if check_only:
-        slots._built["device"] = torch.device("meta")
+    slots = _Slots(cfg, torch.device("meta") if check_only else None)
     with torch.random.fork_rng(devices=[]):
         method = slots["method"]
     reason = method.fits(slots["scenario"].spec)
@@ -346,7 +343,7 @@ def _draws(cfg: DictConfig, s: "_Slots"):
     follow it too). Each call builds anew: one draw at a time."""
     import copy
 
-    dtype, dev = s["dtype"], s["device"]
+    dev = s["device"]
 
     def draw(seed: int):
         c = copy.deepcopy(cfg)
@@ -354,8 +351,7 @@ def _draws(cfg: DictConfig, s: "_Slots"):
         with open_dict(c):
             c.seed = int(seed)
         torch.manual_seed(int(seed))
-        slots = _Slots(c)
-        slots._built.update(dtype=dtype, device=dev)
+        slots = _Slots(c, dev)  # (the dtype: ``c``'s, the same)
         return slots["scenario"], slots["scenario_network"], slots["method"]
 
     return draw
@@ -371,11 +367,9 @@ SLOTS.update({
 })
 
 
-def build_study(cfg: DictConfig) -> Any:
-    """The study of ``cfg.task`` (its ``_target_``, a class registered with the task's schema), its
-    slots filled with the run's built parts and typed settings (:data:`SLOTS`)."""
-    import inspect
-
+def study_slots(cfg: DictConfig) -> tuple[type, list[str]]:
+    """The study class of ``cfg.task`` (its ``_target_``, a class registered with the task's schema) and the
+    slots it names (its constructor's parameters); ConfigError for a slot :data:`SLOTS` does not fill."""
     target = str(cfg.task._target_)
     cls = import_object(target, "task._target_")
     params = [n for n in inspect.signature(cls).parameters if n != "self"]
@@ -383,6 +377,13 @@ def build_study(cfg: DictConfig) -> Any:
     if unknown:
         raise ConfigError(f"{target} asks for slot(s) {unknown} that the composition root does not fill; "
                           f"slots: {sorted(SLOTS)}")
+    return cls, params
+
+
+def build_study(cfg: DictConfig) -> Any:
+    """The study of ``cfg.task``, its slots (:func:`study_slots`) filled with the run's built parts and typed
+    settings (:data:`SLOTS`)."""
+    cls, params = study_slots(cfg)
     torch.manual_seed(int(cfg.seed))  # parts with random initial values (features, weights) follow the run's seed
     slots = _Slots(cfg)
     return cls(**{n: slots[n] for n in params})

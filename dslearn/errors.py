@@ -1,5 +1,8 @@
 """Errors raised for bad configuration or input, before any work starts."""
 
+from collections.abc import Mapping
+from numbers import Integral
+
 
 class ConfigError(ValueError):
     """A configuration value is invalid. The message names the field and what is allowed."""
@@ -35,6 +38,49 @@ def check_positive(field: str, value, *, strict: bool = True, finite: bool = Tru
         raise ConfigError(f"{field}={value!r} must be {bound}")
     if finite and v == float("inf"):
         raise ConfigError(f"{field}={value!r} must be finite (and {bound})")
+
+
+def check_number(field: str, value, low: float | None = None, *, strict: bool = False,
+                 high: float | None = None, note: str = "") -> float:
+    """``value`` as a float; :class:`ConfigError` unless it is a finite number (not a boolean) ``>= low`` (``> low``
+    when ``strict``) and ``<= high`` (each bound optional). ``note`` follows the bounds in the message."""
+    if value is None:
+        raise ConfigError(f"{field} must be a number, not null")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value \
+            or value in (float("inf"), float("-inf")):
+        raise ConfigError(f"{field}={value!r} must be a finite number")
+    if low is not None and (value <= low if strict else value < low) or (high is not None and value > high):
+        rule = " and ".join(s for s in ("" if low is None else f"{'>' if strict else '>='} {low:g}",
+                                        "" if high is None else f"<= {high:g}") if s)
+        raise ConfigError(f"{field}={value!r} must be {rule}{note}")
+    return float(value)
+
+
+def check_integer(field: str, value, low: int = 0, *, note: str = "") -> int:
+    """``value`` as an int; :class:`ConfigError` unless it is an integer (not a boolean) ``>= low``. ``note`` (what
+    the count is) follows the bound in the message."""
+    if isinstance(value, bool) or not isinstance(value, Integral) or value < low:
+        raise ConfigError(f"{field}={value!r} must be an integer >= {low}{note}")
+    return int(value)
+
+
+def check_flag(field: str, value) -> bool:
+    """``value``; :class:`ConfigError` unless it is a boolean."""
+    if not isinstance(value, bool):
+        raise ConfigError(f"{field}={value!r} must be true or false")
+    return value
+
+
+def check_keys(field: str, value, keys) -> dict:
+    """The mapping ``value`` as a dict; :class:`ConfigError` naming ``field`` and the allowed ``keys`` if it is not a
+    mapping or has a key not in ``keys``."""
+    keys = list(keys)
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{field}={value!r} must be a mapping with keys {keys}")
+    unknown = sorted(str(k) for k in value if k not in keys)
+    if unknown:
+        raise ConfigError(f"{field}: unknown key(s) {unknown}; allowed: {keys}")
+    return dict(value)
 
 
 def check_finite(field: str, value) -> None:

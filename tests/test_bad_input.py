@@ -10,6 +10,7 @@ import contextlib
 import io
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -176,8 +177,7 @@ def test_good_configs_pass(make_cfg):
 
 
 def test_registry_matches_the_task_configs():
-    """``task._target_`` (or a study's ``task.entry``) must be registered; the registry is exactly the
-    task configs' study classes."""
+    """``task._target_`` must be registered; the registry is exactly the task configs' study classes."""
     from omegaconf import OmegaConf
 
     from dslearn.schemas.core import TASK_TARGETS
@@ -185,7 +185,7 @@ def test_registry_matches_the_task_configs():
     found = {}
     for p in (ROOT / "conf" / "task").glob("*.yaml"):
         c = OmegaConf.load(p)
-        found[str(c.name)] = str(c.get("_target_") or c.entry)
+        found[str(c.name)] = str(c._target_)
     assert found == TASK_TARGETS
 
 
@@ -347,16 +347,20 @@ def test_report_bad_inputs(tmp_path):
 # function-level checks
 
 
-def test_bad_entry_and_network(make_cfg):
-    from dslearn.app.record import resolve_entry
+def test_bad_task_target_and_network(make_cfg):
+    """Every study is a registered class the composition root builds (``task._target_``): a ``task.entry`` (a
+    function, as studies once were) is an unknown key, and a task without a ``_target_`` is refused naming the
+    registered studies."""
+    from omegaconf import OmegaConf
+
     from dslearn import api
 
-    with pytest.raises(ConfigError, match="task.entry='nomodule' is not a registered study"):
-        resolve_entry("nomodule")
-    with pytest.raises(ConfigError, match="is not a registered study"):
-        resolve_entry("dslearn.nosuch:run")
-    with pytest.raises(ConfigError, match="is not a registered study"):  # a component now: no entry function
-        resolve_entry("dslearn.studies.jiang_fg:run")
+    with pytest.raises(ConfigError, match=re.escape("task.entry: unknown key; task takes ['_target_', 'name']")):
+        validate_config(make_cfg("+task.entry=dslearn.studies.yu:run"))
+    cfg = OmegaConf.create(OmegaConf.to_container(make_cfg("task=jiang_fg")))
+    cfg.task = {"name": "jiang_fg", "entry": "dslearn.studies.jiang_fg:run"}
+    with pytest.raises(ConfigError, match=re.escape("task._target_=None is not a registered study; choose one of [")):
+        validate_config(cfg)
     cfg = make_cfg("network.comm_radius=0.5")
     with pytest.raises(ConfigError, match="disconnected"):
         api.build_study(cfg)

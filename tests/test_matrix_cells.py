@@ -65,9 +65,11 @@ def test_every_n_a_cell_of_the_matrix_says_why_from_the_spec():
         engines = {}
         for c in combos:
             if specs[_opt(c, "scenario")] is None:
-                from dslearn.schemas.matrix import _MetaSlots
+                import torch
 
-                specs[_opt(c, "scenario")] = _MetaSlots(composed(c))["scenario"].spec
+                from dslearn.compose import _Slots
+
+                specs[_opt(c, "scenario")] = _Slots(composed(c), torch.device("meta"))["scenario"].spec
             if _opt(c, "method") in engines:
                 continue
             cfg = composed(c)

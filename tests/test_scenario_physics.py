@@ -34,7 +34,6 @@ from dslearn.compose import _Slots, build_network
 from dslearn.data.ethucy import data_available
 from dslearn.episodes import Episodes, Measurements
 from dslearn.errors import ConfigError
-from dslearn.schemas.matrix import _MetaSlots
 
 #: what every matrix scenario declares, by hand from conf/scenario/*.yaml and conf/network/yu.yaml:
 #: (sensors' noise sigma, time step [s], nodes, sensing nodes)
@@ -93,7 +92,7 @@ class Caught(Exception):
 def _cell(method: str, scenario: str, *extra: str):
     """The cell's configuration (validated: the up-front check builds it too) and its parts on the meta device."""
     cfg = api.compose("task=matrix", f"method={method}", f"scenario={scenario}", *extra)
-    slots = _MetaSlots(cfg)
+    slots = _Slots(cfg, torch.device("meta"))
     return cfg, slots["scenario"], slots["scenario_network"], slots["method"]
 
 

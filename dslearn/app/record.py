@@ -24,23 +24,9 @@ from omegaconf import DictConfig, OmegaConf
 from dslearn import __version__
 from dslearn.app import common
 from dslearn.app.common import STATUS_FILE, log
-from dslearn.errors import ConfigError
 
 if TYPE_CHECKING:
     import pandas as pd
-
-
-def resolve_entry(entry: str):
-    """A registered study entry (``"pkg.module:function"``, one of
-    :data:`dslearn.schemas.core.TASK_TARGETS`: a study not yet built as a component) -> the function."""
-    from dslearn.schemas.core import check_target
-
-    check_target(entry, "entry")
-    mod, fn = entry.split(":", 1)
-    try:
-        return getattr(importlib.import_module(mod), fn)
-    except (ImportError, AttributeError) as e:
-        raise ConfigError(f"task.entry={entry!r} cannot be imported: {e}") from None
 
 
 def _git_commit() -> str | None:
@@ -167,7 +153,7 @@ class WarningLedger:
 def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
     """Validate ``cfg``, run its task and write the result files into ``out_dir``. Returns the results.
 
-    Raises :class:`ConfigError` (before any work) for a bad configuration.
+    Raises :class:`~dslearn.errors.ConfigError` (before any work) for a bad configuration.
     """
     import pandas as pd
 
@@ -186,17 +172,11 @@ def execute(cfg: DictConfig, out_dir: str | Path) -> pd.DataFrame:
 
     progress = bool(cfg.get("progress", False))
     with Diagnostics() as diag, WarningLedger(diag) as ledger:
-        if "_target_" in cfg.task:  # a component: the composition root fills its slots
-            from dslearn.compose import build_study
+        from dslearn.compose import build_study  # the composition root fills the study's slots
 
-            df = build_study(cfg).run(diagnostics=diag, progress=progress)
-        else:
-            import inspect
-
-            fn = resolve_entry(cfg.task.entry)
-            df = fn(cfg, diagnostics=diag) if "diagnostics" in inspect.signature(fn).parameters else fn(cfg)
+        df = build_study(cfg).run(diagnostics=diag, progress=progress)
     wall = time.perf_counter() - t0
-    what = cfg.task.get("_target_") or cfg.task.get("entry")
+    what = cfg.task._target_
     if not isinstance(df, pd.DataFrame) or not {"metric", "value"} <= set(df.columns):
         raise RuntimeError(f"task {what} must return a tidy DataFrame with 'metric' and 'value' columns")
     if df.empty:

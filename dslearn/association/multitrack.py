@@ -50,7 +50,7 @@ from torch import Tensor
 from dslearn.association.base import DTYPE
 from dslearn.association.gating import check_probability
 from dslearn.association.tracks import INITIATIONS, TrackManager, TrackManagerSettings, check_track_counts
-from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.errors import ConfigError, check_choice, check_flag, check_positive
 from dslearn.types import AGENT_DIM, safe_cholesky, symmetrize
 
 #: when the tracks are managed (``associator.tracks.manage``): ``auto`` where the scenario declares births and
@@ -77,8 +77,7 @@ class TrackSettings:
     adopt: bool = True
 
     def __post_init__(self):
-        if not isinstance(self.adopt, bool):
-            raise ConfigError(f"associator.tracks.adopt={self.adopt!r} must be true or false")
+        check_flag("associator.tracks.adopt", self.adopt)
         check_choice("associator.tracks.manage", self.manage, MANAGE)
         check_choice("associator.tracks.initiation", self.initiation, INITIATIONS)
         check_track_counts("associator.tracks.", self.confirm_m, self.confirm_n, self.delete_after)

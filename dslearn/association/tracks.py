@@ -29,7 +29,7 @@ from scipy.optimize import linear_sum_assignment
 from torch import Tensor
 
 from dslearn.association.base import DTYPE, Association
-from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.errors import ConfigError, check_choice, check_integer, check_positive
 from dslearn.models.base import ObservationModel
 from dslearn.types import AGENT_DIM
 
@@ -42,8 +42,7 @@ def check_track_counts(prefix: str, confirm_m, confirm_n, delete_after) -> None:
     """M-of-N confirmation and deletion counts: integers >= 1 with ``confirm_m <= confirm_n``; a
     :class:`ConfigError` naming ``<prefix><key>`` otherwise."""
     for name, v in (("confirm_m", confirm_m), ("confirm_n", confirm_n), ("delete_after", delete_after)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise ConfigError(f"{prefix}{name}={v!r} must be an integer >= 1")
+        check_integer(f"{prefix}{name}", v, 1)
     if confirm_m > confirm_n:
         raise ConfigError(f"{prefix}confirm_m={confirm_m} must be <= {prefix}confirm_n={confirm_n}")
 

@@ -88,9 +88,8 @@ def _check_value(name: str, v, rules: dict) -> None:
         return
     if v is None:
         return
-    choices = rules.get("choices")
-    if choices is not None and v not in choices:
-        raise ConfigError(f"{name}={v!r} is not allowed; choose one of {list(choices)}")
+    if rules.get("choices") is not None:
+        check_choice(name, v, rules["choices"])
     if not isinstance(v, (int, float)) or isinstance(v, bool):
         return
     if isinstance(v, float) and not math.isfinite(v) and ("ge" in rules or "gt" in rules):

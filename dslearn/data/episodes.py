@@ -29,7 +29,7 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.errors import ConfigError, check_choice, check_integer, check_positive
 
 CRITERIA = ("mutual", "closest")
 SPLITS = ("time", "scene", "random")
@@ -176,18 +176,15 @@ def extract_episodes(
     Returns:
         :class:`EpisodeSet` (may be empty).
     """
-    if not isinstance(num_agents, int) or num_agents < 2:
-        raise ConfigError(f"task.agents={num_agents!r} must be an integer >= 2")
-    if not isinstance(steps, int) or steps < 1:
-        raise ConfigError(f"task.steps={steps!r} must be an integer >= 1")
+    check_integer("task.agents", num_agents, 2)
+    check_integer("task.steps", steps, 1)
     check_choice("task.criterion", criterion, CRITERIA)
     check_positive("task.max_dist", max_dist)
     check_positive("task.min_speed", min_speed, strict=False)
     dt = float(scene.dt if dt is None else dt)
     check_positive("task.dt", dt)
     stride = steps if stride is None else stride
-    if not isinstance(stride, int) or stride < 1:
-        raise ConfigError(f"task.stride={stride!r} must be an integer >= 1")
+    check_integer("task.stride", stride, 1)
     m, span = num_agents, steps * dt
     states, rows = [], []
     df = scene.df

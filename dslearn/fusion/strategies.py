@@ -8,6 +8,8 @@ as one product with :math:`W^L` (identical, and ``L`` times cheaper than looping
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 from torch import Tensor
 
@@ -15,6 +17,18 @@ from dslearn.errors import ConfigError, check_choice
 from dslearn.types import symmetrize
 
 FUSIONS = ("individual", "ce", "cm", "ci", "hybrid", "centralized")
+
+
+def check_consensus(iterations, omega) -> None:
+    """The rules of a fusion's ``consensus.iterations`` (``L``, an integer >= 0) and ``consensus.omega`` (``one``,
+    ``nodes`` or a finite number > 0), each refused naming its key: the fusion's constructor and the core study's
+    schema check (which refuses them before the fusions of a grid are built) apply these."""
+    if int(iterations) != iterations or iterations < 0:
+        raise ConfigError(f"consensus.iterations={iterations!r} must be an integer >= 0")
+    if isinstance(omega, str):
+        check_choice("consensus.omega", omega, ("one", "nodes"))
+    elif isinstance(omega, bool) or not isinstance(omega, numbers.Real) or not 0 < omega < float("inf"):
+        raise ConfigError(f"consensus.omega={omega!r} must be > 0 and finite, 'one' or 'nodes'")
 
 
 def mix(w: Tensor, y: Tensor) -> Tensor:
@@ -69,17 +83,13 @@ class Fusion:
         return None
 
     def __init__(self, weights: Tensor, iterations: int = 4, omega: float | str = "one"):
-        if int(iterations) != iterations or iterations < 0:
-            raise ConfigError(f"consensus.iterations={iterations!r} must be an integer >= 0")
+        check_consensus(iterations, omega)
         self.weights = weights
         self.iterations = int(iterations)
         s = weights.shape[0]
         if isinstance(omega, str):
-            check_choice("consensus.omega", omega, ("one", "nodes"))
             self.omega = 1.0 if omega == "one" else float(s)
         else:
-            if not 0 < float(omega) < float("inf"):
-                raise ConfigError(f"consensus.omega={omega!r} must be > 0, 'one' or 'nodes'")
             self.omega = float(omega)
         self.omega_label = str(omega)
         self.wl = torch.linalg.matrix_power(weights, self.iterations)

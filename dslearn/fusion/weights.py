@@ -13,8 +13,6 @@ from torch import Tensor
 
 from dslearn.errors import ConfigError, check_choice
 
-WEIGHT_METHODS = ("uniform", "metropolis", "max_degree", "half_max_degree")
-
 
 def _clean(adj: Tensor) -> Tensor:
     adj = torch.as_tensor(adj)
@@ -81,6 +79,8 @@ def half_max_degree(adj: Tensor, dtype=torch.float64) -> Tensor:
 #: name -> weight rule (the table :func:`consensus_weights` selects from)
 WEIGHT_RULES = {"uniform": uniform, "metropolis": metropolis, "max_degree": max_degree,
                 "half_max_degree": half_max_degree}
+#: the names of the weight rules (``consensus.weights``)
+WEIGHT_METHODS = tuple(WEIGHT_RULES)
 
 
 def consensus_weights(adj: Tensor, method: str = "uniform", dtype=torch.float64) -> Tensor:

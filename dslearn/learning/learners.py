@@ -34,7 +34,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.errors import ConfigError, check_choice, check_flag, check_integer, check_keys, check_number, check_positive
 from dslearn.learning import Learner
 
 
@@ -85,34 +85,8 @@ class NoLearning(Learner):
 # ------------------------------------------------------------------------------------------------ helpers
 def _block(value: Any, defaults: dict, prefix: str) -> dict:
     """``defaults`` updated with the mapping ``value`` (``None``: the defaults); ConfigError naming ``prefix`` on
-    something that is not a mapping or on an unknown key."""
-    if value is None:
-        return dict(defaults)
-    if not isinstance(value, dict):
-        raise ConfigError(f"{prefix}={value!r} must be a mapping with keys {list(defaults)}")
-    unknown = sorted(str(k) for k in value if k not in defaults)
-    if unknown:
-        raise ConfigError(f"{prefix}: unknown key(s) {unknown}; allowed: {list(defaults)}")
-    return {**defaults, **value}
-
-
-def _number(key: str, v: Any, low: float | None = None, strict: bool = False, high: float | None = None,
-            extra: str = "") -> float:
-    """``v`` as a finite float within the bounds; ConfigError naming ``key`` otherwise."""
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v or v in (float("inf"), float("-inf")):
-        raise ConfigError(f"{key}={v!r} must be a finite number")
-    if low is not None and ((v <= low) if strict else (v < low)) or (high is not None and v > high):
-        rule = " and ".join(s for s in (
-            "" if low is None else f"{'>' if strict else '>='} {low:g}",
-            "" if high is None else f"<= {high:g}") if s)
-        raise ConfigError(f"{key}={v!r} must be {rule}{extra}")
-    return float(v)
-
-
-def _integer(key: str, v: Any, low: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < low:
-        raise ConfigError(f"{key}={v!r} must be an integer >= {low}")
-    return v
+    something that is not a mapping or on an unknown key (:func:`~dslearn.errors.check_keys`)."""
+    return {**defaults, **({} if value is None else check_keys(prefix, value, defaults))}
 
 
 # ------------------------------------------------------------------------------------------- Braga: EM
@@ -149,9 +123,9 @@ class OnlineEM(Learner):
         if em["init_mode"] is True:  # `init_mode=true` on the command line is a bool
             em["init_mode"] = "true"
         check_choice("learner.em.init_mode", em["init_mode"], ("true", "uniform"))
-        em["eta_exponent"] = _number("learner.em.eta_exponent", em["eta_exponent"], 0.5, True, 1.0)
-        _integer("learner.em.burn_in", em["burn_in"], 0)
-        em["sigma_floor"] = _number("learner.em.sigma_floor", em["sigma_floor"], 0.0, True)
+        em["eta_exponent"] = check_number("learner.em.eta_exponent", em["eta_exponent"], 0.5, strict=True, high=1.0)
+        check_integer("learner.em.burn_in", em["burn_in"], 0)
+        em["sigma_floor"] = check_number("learner.em.sigma_floor", em["sigma_floor"], 0.0, strict=True)
         self.em = em
         modes = _block(self.modes, MODE_DEFAULTS, "learner.modes")
         #: the checked initial noise parameters (:class:`~dslearn.models.jmnls.NoiseParams`)
@@ -215,17 +189,11 @@ def hyper_config(hyper: Any, prefix: str = "learner.hyper") -> Any:
     elif isinstance(hyper, HyperConfig):
         hc = hyper
     else:
-        if not isinstance(hyper, dict):
-            raise ConfigError(f"{prefix}={hyper!r} must be a mapping with keys {list(keys)}")
-        unknown = sorted(str(k) for k in hyper if k not in keys)
-        if unknown:
-            raise ConfigError(f"{prefix}: unknown key(s) {unknown}; allowed: {list(keys)}")
-        hc = HyperConfig(**dict(hyper))
+        hc = HyperConfig(**check_keys(prefix, hyper, keys))
     check_choice(f"{prefix}.optimizer", hc.optimizer, OPTIMISERS)
     for key in ("iters", "iters_first", "max_iters"):
-        _integer(f"{prefix}.{key}", getattr(hc, key), 1 if key == "max_iters" else 0)
-    if not isinstance(hc.gap_check, bool):
-        raise ConfigError(f"{prefix}.gap_check={hc.gap_check!r} must be true or false")
+        check_integer(f"{prefix}.{key}", getattr(hc, key), 1 if key == "max_iters" else 0)
+    check_flag(f"{prefix}.gap_check", hc.gap_check)
     for key in ("lr", "tol", *(k for k in keys if k.startswith(("init_", "min_", "max_")) and k != "max_iters")):
         check_positive(f"{prefix}.{key}", getattr(hc, key))
     for lo, hi, inits in _BOX:
@@ -332,30 +300,24 @@ class FactorGraphIdentification(Learner):
         from dslearn.learning.factor_graph.crlb import CRLB_FORMS
         from dslearn.learning.factor_graph.identification import GRAPHS, SCHEDULES
 
-        _integer("learner.iterations", self.iterations, 1)
+        check_integer("learner.iterations", self.iterations, 1)
         fg = _block(self.fg, FG_DEFAULTS, "learner.fg")
         choices = {"init_guess_mode": ("fixed", "prediction"), "taylor_point": ("prediction", "guess"),
                    "schedule": SCHEDULES, "graph": GRAPHS, "measurement_var": ("sample", "known"),
                    "crlb_form": CRLB_FORMS}
         for key, allowed in choices.items():
             check_choice(f"learner.fg.{key}", fg[key], allowed)
-        if not isinstance(fg["relinearize"], bool):
-            raise ConfigError(f"learner.fg.relinearize={fg['relinearize']!r} must be true or false")
+        check_flag("learner.fg.relinearize", fg["relinearize"])
         for key, low, strict in _FG_RANGES:
-            v = fg[key]
-            if v is None:
-                if key != "prior_var":
-                    raise ConfigError(f"learner.fg.{key} must be a number, not null")
-                continue
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
-                    or (v <= low if strict else v < low) or (key == "damping" and v >= 1.0):
-                rule = f"{'>' if strict else '>='} {low:g}" + (" and < 1" if key == "damping" else "")
-                raise ConfigError(f"learner.fg.{key}={v!r} must be {rule} (finite)")
+            if fg[key] is not None or key != "prior_var":
+                check_number(f"learner.fg.{key}", fg[key], low, strict=strict, note=" (finite)")
+        if fg["damping"] >= 1.0:
+            raise ConfigError(f"learner.fg.damping={fg['damping']!r} must be >= 0 and < 1 (finite)")
         guess = fg["init_guess"]
         if not isinstance(guess, (list, tuple)) or len(guess) != 2:
             raise ConfigError(f"learner.fg.init_guess={guess!r} must be a list of 2 numbers (the source's 2 parameters)")
         for x in guess:
-            _number("learner.fg.init_guess", x)
+            check_number("learner.fg.init_guess", x)
         self.fg = fg
 
     # the identification of a motion model from true tracks (the distributed filter's learner)
@@ -370,10 +332,11 @@ class FactorGraphIdentification(Learner):
         return (f"the factor-graph identification sets the damped constant-velocity model's (a, q) "
                 f"(model=cv_damped), not {type(model).__name__}'s")
 
-    def check_motion_settings(self, engine: str) -> None:
-        """Refuse the settings (``learner.fg``) the identification from true tracks cannot use (:data:`MOTION_NEEDS`):
+    def check_motion_settings(self, engine: str, needs: tuple = MOTION_NEEDS) -> None:
+        """Refuse the settings (``learner.fg``) the identification of a motion model cannot use (``needs``: (key,
+        the value it needs, why); by default those of the identification from true tracks, :data:`MOTION_NEEDS`):
         ConfigError naming the key, the engine and the value it needs."""
-        for key, need, why in MOTION_NEEDS:
+        for key, need, why in needs:
             if self.fg[key] != need:
                 shown = str(need).lower() if isinstance(need, bool) else need
                 raise ConfigError(f"learner.fg.{key}={self.fg[key]!r} does not apply to {engine}: {why}; "

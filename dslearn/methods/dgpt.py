@@ -23,7 +23,7 @@ from typing import Any
 import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
-from dslearn.errors import ConfigError, check_choice
+from dslearn.errors import ConfigError, check_choice, check_integer
 from dslearn.filters.dgpt import GP_INPUTS, HyperConfig, track
 from dslearn.learning.learners import OnlineHyperparameters, refuse
 from dslearn.methods.base import require
@@ -65,8 +65,7 @@ class DGPTMethod:
                 f"consensus={name} is not a GP aggregation rule: Liu's DGPT (filter=dgpt) combines its sensors' "
                 f"local GP experts at a fusion centre with one, consensus=poe|gpoe|bcm|rbcm (an information-form "
                 f"fusion is the distributed filter's: filter=default|ukf)")
-        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
-            raise ConfigError(f"filter.window={self.window!r} must be an integer >= 1 (steps)")
+        check_integer("filter.window", self.window, 1, note=" (steps)")
         check_choice("filter.gp_input", self.gp_input, GP_INPUTS)
         if self.learner is None:
             self.learner = OnlineHyperparameters()

@@ -26,7 +26,7 @@ from typing import Any
 import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
-from dslearn.errors import ConfigError, check_choice
+from dslearn.errors import ConfigError, check_choice, check_integer, check_keys, check_number
 from dslearn.filters.ekf_fg import OBS_VAR_MODES
 from dslearn.learning.factor_graph.engine import EkfFgTracker, TrackerSettings
 from dslearn.learning.learners import FactorGraphIdentification, refuse
@@ -44,44 +44,21 @@ _RANGES = (("initial_state_var", 0.0, True), ("initial_gradient_var", 0.0, True)
 NODE = "fusion_center"
 
 
-def _block(value, keys: tuple[str, ...], prefix: str) -> dict:
-    if value is None:
-        return {}
-    if not isinstance(value, dict):
-        raise ConfigError(f"{prefix}={value!r} must be a mapping with keys {list(keys)}")
-    unknown = sorted(str(k) for k in value if k not in keys)
-    if unknown:
-        raise ConfigError(f"{prefix}: unknown key(s) {unknown}; allowed: {list(keys)}")
-    return dict(value)
-
-
-def _number(key: str, v) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v:
-        raise ConfigError(f"{key}={v!r} must be a number")
-    return float(v)
-
-
 def tracker_settings(fg: dict, tracker: dict, initial_state) -> TrackerSettings:
     """Checked :class:`TrackerSettings` from the identification's settings ``fg`` (checked by the learner,
     :class:`~dslearn.learning.learners.FactorGraphIdentification`) and the ``filter.tracker`` block (the defaults
     of :class:`TrackerSettings` for missing keys: the paper's equations). ConfigError naming the key."""
-    values = _block(tracker, TRACKER_KEYS, "filter.tracker")
+    values = {} if tracker is None else check_keys("filter.tracker", tracker, TRACKER_KEYS)
     if "obs_var" in values:
         check_choice("filter.tracker.obs_var", values["obs_var"], OBS_VAR_MODES)
     for key, low, strict in _RANGES:
-        v = values.get(key)
-        if v is None:
-            if key in values and key != "gate":
-                raise ConfigError(f"filter.tracker.{key} must be a number, not null")
-            continue
-        x = _number(f"filter.tracker.{key}", v)
-        if (x <= low if strict else x < low) or x == float("inf"):
-            raise ConfigError(f"filter.tracker.{key}={v!r} must be {'>' if strict else '>='} {low:g} (finite)")
+        if key in values and (values[key] is not None or key != "gate"):
+            check_number(f"filter.tracker.{key}", values[key], low, strict=strict, note=" (finite)")
     if not isinstance(initial_state, (list, tuple)) or len(initial_state) != 2:
         raise ConfigError(f"filter.initial_state={initial_state!r} must be a list of 2 numbers (the source's 2 "
                           f"parameters)")
     for x in initial_state:
-        _number("filter.initial_state", x)
+        check_number("filter.initial_state", x)
     return TrackerSettings.from_config(initial_state=list(initial_state), **dict(fg or {}), **values)
 
 
@@ -172,12 +149,6 @@ _LIN_NEEDS = (
 )
 
 
-def _count(key: str, v, low: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < low:
-        raise ConfigError(f"{key}={v!r} must be an integer >= {low}")
-    return int(v)
-
-
 @dataclasses.dataclass
 class FactorGraphMotionMethod:
     """The factor-graph identification of a motion model from position measurements + a Kalman filter with it: the
@@ -215,18 +186,10 @@ class FactorGraphMotionMethod:
         elif not isinstance(self.learner, FactorGraphIdentification):
             raise refuse(self.learner, "the factor-graph EKF on position sensors (filter=fg_ekf_lin) identifies its "
                                        "motion model over the factor graph", self.learners)
-        fg = self.learner.fg
-        for key, need, why in _LIN_NEEDS:
-            if fg[key] != need:
-                shown = str(need).lower() if isinstance(need, bool) else need
-                raise ConfigError(f"learner.fg.{key}={fg[key]!r} does not apply to filter=fg_ekf_lin: {why}; "
-                                  f"allowed: {shown}")
-        self.rounds = _count("filter.rounds", self.rounds, 1)
+        self.learner.check_motion_settings("filter=fg_ekf_lin", _LIN_NEEDS)
+        self.rounds = check_integer("filter.rounds", self.rounds, 1)
         for key in ("prior_pos_std", "prior_vel_std"):
-            v = _number(f"filter.{key}", getattr(self, key))
-            if not 0.0 < v < float("inf"):
-                raise ConfigError(f"filter.{key}={getattr(self, key)!r} must be > 0 (finite)")
-            setattr(self, key, v)
+            setattr(self, key, check_number(f"filter.{key}", getattr(self, key), 0.0, strict=True, note=" (finite)"))
         #: the last identification (:class:`~dslearn.learning.factor_graph.motion.MotionIdentification`)
         self.identified = None
 

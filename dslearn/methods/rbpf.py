@@ -26,7 +26,7 @@ from typing import Any
 import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
-from dslearn.errors import ConfigError, check_choice
+from dslearn.errors import ConfigError, check_choice, check_integer, check_number
 from dslearn.learning.learners import OnlineEM, _block, refuse
 from dslearn.learning.online_em import KERNEL_DTYPES, run_tbn
 from dslearn.methods.base import require
@@ -41,13 +41,13 @@ KERNEL_KEYS = {"jitter_pos": 1.0, "jitter_vel": 0.0, "dtype": None}
 NODE = "onboard"
 
 
-def _num(key: str, v, low: float, strict: bool, high: float | None = None) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v or v == float("inf"):
-        raise ConfigError(f"filter.{key}={v!r} must be a finite number")
-    if (v <= low if strict else v < low) or (high is not None and v > high):
-        rule = f"{'>' if strict else '>='} {low:g}" + ("" if high is None else f" and <= {high:g}")
-        raise ConfigError(f"filter.{key}={v!r} must be {rule}")
-    return float(v)
+def check_particle_settings(method) -> None:
+    """Check (and make floats of) the particle filter's settings shared by :class:`RBPFMethod` and
+    :class:`~dslearn.methods.rbpf_modes.RBPFModesMethod`: ``filter.num_particles``, ``filter.process_noise`` and
+    ``filter.ess_threshold``."""
+    check_integer("filter.num_particles", method.num_particles, 1)
+    method.process_noise = check_number("filter.process_noise", method.process_noise, 0.0, strict=True)
+    method.ess_threshold = check_number("filter.ess_threshold", method.ess_threshold, 0.0, high=1.0)
 
 
 @dataclasses.dataclass
@@ -86,15 +86,11 @@ class RBPFMethod:
             raise ConfigError(f"consensus={name} is not a cooperation on sufficient statistics: Braga et al.'s "
                               f"RBPF + online EM (filter=rbpf_em) combines its nodes' EM statistics, "
                               f"consensus=statistics")
-        n = self.num_particles
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ConfigError(f"filter.num_particles={n!r} must be an integer >= 1")
-        self.process_noise = _num("process_noise", self.process_noise, 0.0, True)
-        self.ess_threshold = _num("ess_threshold", self.ess_threshold, 0.0, False, 1.0)
-        self.regularise = _num("regularise", self.regularise, 0.0, False)
+        check_particle_settings(self)
+        self.regularise = check_number("filter.regularise", self.regularise, 0.0)
         bk = _block(self.backward_kernel, KERNEL_KEYS, "filter.backward_kernel")
-        _num("backward_kernel.jitter_pos", bk["jitter_pos"], 0.0, True)
-        _num("backward_kernel.jitter_vel", bk["jitter_vel"], 0.0, False)
+        check_number("filter.backward_kernel.jitter_pos", bk["jitter_pos"], 0.0, strict=True)
+        check_number("filter.backward_kernel.jitter_vel", bk["jitter_vel"], 0.0)
         check_choice("filter.backward_kernel.dtype", bk["dtype"], tuple(KERNEL_DTYPES))
         self.backward_kernel = bk
         if self.learner is None:

@@ -48,13 +48,13 @@ from typing import Any
 import torch
 
 from dslearn.episodes import Episodes, Estimates, Measurements, Scenario, ScenarioSpec
-from dslearn.errors import ConfigError
+from dslearn.errors import ConfigError, check_integer, check_number
 from dslearn.filters.distributed import diffuse_prior, first_fix, prior_means
 from dslearn.filters.mkf import LinearGaussianState, init_state, local_stats, mkf_step, mkf_step_sensors, moments
 from dslearn.fusion.strategies import Centralized
 from dslearn.learning.learners import OnlineEMSensor, refuse
 from dslearn.methods.base import require
-from dslearn.methods.rbpf import FUSION_KIND, _num
+from dslearn.methods.rbpf import FUSION_KIND, check_particle_settings
 from dslearn.models.base import ObservationModel
 from dslearn.models.jmnls import NoiseParams, m_step, stats_dim
 from dslearn.models.observation import LinearPositionObservation
@@ -71,6 +71,15 @@ MEASUREMENTS = ("position", "squared_range", "range", "bearing")
 STATE_LAYOUTS = ("pv2d", "param2d")
 #: the reporting entry of the fusion centre (nonlinear sensors)
 CENTRE = "fusion"
+
+
+def _finished(mean: torch.Tensor, cov: torch.Tensor, params: list) -> tuple:
+    """A run's mixture means and covariances and its noise parameters after each step (``params`` stacked);
+    FloatingPointError on a non-finite estimate."""
+    if not (torch.isfinite(mean).all() and torch.isfinite(cov).all()):
+        raise FloatingPointError("non-finite estimate in the RBPF over noise modes (this is a bug)")
+    return mean, cov, NoiseParams(torch.stack([p.mu for p in params]), torch.stack([p.sigma for p in params]),
+                                  torch.stack([p.pi for p in params]))
 
 
 @dataclasses.dataclass
@@ -123,16 +132,12 @@ class RBPFModesMethod:
             raise ConfigError(f"consensus={name} is not a cooperation on sufficient statistics: the RBPF over noise "
                               f"modes + online EM (filter=rbpf_em_lin) combines its nodes' EM statistics, "
                               f"consensus=statistics")
-        n = self.num_particles
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ConfigError(f"filter.num_particles={n!r} must be an integer >= 1")
-        self.process_noise = _num("process_noise", self.process_noise, 0.0, True)
-        self.ess_threshold = _num("ess_threshold", self.ess_threshold, 0.0, False, 1.0)
-        self.prior_pos_std = _num("prior_pos_std", self.prior_pos_std, 0.0, True)
-        self.prior_vel_std = _num("prior_vel_std", self.prior_vel_std, 0.0, True)
+        check_particle_settings(self)
+        for key in ("prior_pos_std", "prior_vel_std"):
+            setattr(self, key, check_number(f"filter.{key}", getattr(self, key), 0.0, strict=True))
         it = self.ekf_iterations
-        if it is not None and (isinstance(it, bool) or not isinstance(it, int) or it < 1):
-            raise ConfigError(f"filter.ekf_iterations={it!r} must be an integer >= 1 (1: the extended Kalman update)")
+        if it is not None:
+            check_integer("filter.ekf_iterations", it, 1, note=" (1: the extended Kalman update)")
         if it is not None and not self.centre:
             raise ConfigError(f"filter.ekf_iterations={it!r}: the linear position sensor's Kalman update is exact and "
                               f"reads no linearisation count; drop the key (it is read with a nonlinear sensor of one "
@@ -248,12 +253,7 @@ class RBPFModesMethod:
             params.append(theta)
         mean = torch.stack(means, 1).permute(2, 0, 1, 3, 4)  # (S, B, K+1, A, 4)
         cov = torch.stack(covs, 1).permute(2, 0, 1, 3, 4, 5)
-        if not (torch.isfinite(mean).all() and torch.isfinite(cov).all()):
-            raise FloatingPointError("non-finite estimate in the RBPF over noise modes (this is a bug)")
-        hist = NoiseParams(torch.stack([p.mu for p in params]), torch.stack([p.sigma for p in params]),
-                           torch.stack([p.pi for p in params]))
-        return mean, cov, hist
-
+        return _finished(mean, cov, params)
 
     def track_centre(self, test: Measurements, network: SensorNetwork, dt: float, area, seed: int):
         """The fusion centre's filters of every target on ``test`` from all the sensors' readings (the module
@@ -306,11 +306,7 @@ class RBPFModesMethod:
             params.append(theta)
         mean = torch.stack(means, 1)[None]  # (1, B, K+1, A, 4)
         cov = torch.stack(covs, 1)[None]
-        if not (torch.isfinite(mean).all() and torch.isfinite(cov).all()):
-            raise FloatingPointError("non-finite estimate in the RBPF over noise modes (this is a bug)")
-        hist = NoiseParams(torch.stack([p.mu for p in params]), torch.stack([p.sigma for p in params]),
-                           torch.stack([p.pi for p in params]))
-        return mean, cov, hist
+        return _finished(mean, cov, params)
 
     def centre_prior(self, test: Measurements, network: SensorNetwork, dt: float, area, dtype, device):
         """The fusion centre's prior of every target ``(B, A, 4)``, ``(B, A, 4, 4)``: the diffuse prior

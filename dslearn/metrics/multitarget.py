@@ -19,15 +19,13 @@ from torch import Tensor
 from dslearn.errors import ConfigError, check_positive
 
 
-def _check_order(p) -> float:
+def _sets(truth: Tensor, est: Tensor, c, p, truth_mask: Tensor | None, est_mask: Tensor | None):
+    """The checked cut-off ``c`` (> 0) and order ``p`` (>= 1) as floats, the batch shape and, per batch element, the
+    two sets as float64 numpy arrays ``(n, d)``, ``(m, d)``."""
+    check_positive("c", c)
     check_positive("p", p)
     if float(p) < 1:
         raise ConfigError(f"p={p!r} must be >= 1 (the order of the metric)")
-    return float(p)
-
-
-def _sets(truth: Tensor, est: Tensor, truth_mask: Tensor | None, est_mask: Tensor | None):
-    """The batch shape and, per batch element, the two sets as float64 numpy arrays ``(n, d)``, ``(m, d)``."""
     truth, est = torch.as_tensor(truth), torch.as_tensor(est)
     if truth.dim() < 2 or est.dim() < 2:
         raise ConfigError(f"truth {tuple(truth.shape)} and est {tuple(est.shape)} must be (*B, N, d) and (*B, M, d)")
@@ -47,7 +45,7 @@ def _sets(truth: Tensor, est: Tensor, truth_mask: Tensor | None, est_mask: Tenso
         return m.detach().to("cpu", torch.bool).reshape(x.shape[:2]).numpy()
 
     tm, em = mask(truth_mask, t, "truth_mask"), mask(est_mask, e, "est_mask")
-    return batch, [(t[b][tm[b]], e[b][em[b]]) for b in range(t.shape[0])]
+    return float(c), float(p), batch, [(t[b][tm[b]], e[b][em[b]]) for b in range(t.shape[0])]
 
 
 def _distances(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -83,10 +81,7 @@ def gospa(truth: Tensor, est: Tensor, c: float, p: float = 2.0, *, truth_mask: T
     Returns:
         ``{"gospa", "gospa_loc", "gospa_missed", "gospa_false"}``, each ``(*B)`` float64.
     """
-    check_positive("c", c)
-    p = _check_order(p)
-    c = float(c)
-    batch, sets = _sets(truth, est, truth_mask, est_mask)
+    c, p, batch, sets = _sets(truth, est, c, p, truth_mask, est_mask)
     out = np.zeros((len(sets), 4))
     for b, (x, y) in enumerate(sets):
         d = _cut_assignment(x, y, c, p)
@@ -111,10 +106,7 @@ def ospa(truth: Tensor, est: Tensor, c: float, p: float = 2.0, *, truth_mask: Te
 
     Args and shapes as :func:`gospa`. Returns ``{"ospa", "ospa_loc", "ospa_card"}``, each ``(*B)`` float64.
     """
-    check_positive("c", c)
-    p = _check_order(p)
-    c = float(c)
-    batch, sets = _sets(truth, est, truth_mask, est_mask)
+    c, p, batch, sets = _sets(truth, est, c, p, truth_mask, est_mask)
     out = np.zeros((len(sets), 3))
     for b, (x, y) in enumerate(sets):
         n, m = max(len(x), len(y)), min(len(x), len(y))

@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.errors import ConfigError, check_choice, check_integer, check_positive
 from dslearn.types import AGENT_DIM, DTYPES, POS, StepContext, agents, joint
 from dslearn.models.base import MotionModel
 
@@ -111,8 +111,7 @@ class SocialLSTM(MotionModel):
         super().__init__()
         for field, v in (("lstm.obs_len", obs_len), ("lstm.pred_len", pred_len), ("lstm.embed", embed),
                          ("lstm.hidden", hidden), ("lstm.grid", grid), ("num_agents", num_agents)):
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ConfigError(f"{field}={v!r} must be an integer >= 1")
+            check_integer(field, v, 1)
         if obs_len < 2:
             raise ConfigError(f"lstm.obs_len={obs_len} must be >= 2 (one displacement at least)")
         check_choice("lstm.pooling", pooling, POOLINGS)
@@ -610,36 +609,25 @@ OFFLINE_DEFAULTS = {"schedule": "fixed", "epochs": 50, "batch_size": 8, "lr": 1e
 SCHEDULE_KEYS = ("schedule", "epochs", "batch_size", "lr", "patience", "min_delta", "lr_factor", "lr_patience", "min_lr")
 
 
-def _int_field(field: str, v, lo: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-        raise ConfigError(f"{field}={v!r} must be an integer >= {lo}")
-    return int(v)
-
-
-def _nonneg(field: str, v) -> float:
-    check_positive(field, v, strict=False)
-    return float(v)
-
-
 def check_schedule(
     *, epochs, batch_size, lr, patience=None, min_delta=0.0, lr_factor=None, lr_patience=2, min_lr=0.0,
     prefix: str = "lstm",
 ) -> None:
     """ConfigError (naming ``{prefix}.<field>`` and the allowed values) for a bad training schedule."""
-    _int_field(f"{prefix}.epochs", epochs, 1)
-    _int_field(f"{prefix}.batch_size", batch_size, 1)
+    check_integer(f"{prefix}.epochs", epochs, 1)
+    check_integer(f"{prefix}.batch_size", batch_size, 1)
     check_positive(f"{prefix}.lr", lr)
     if patience is not None:
-        _int_field(f"{prefix}.patience", patience, 1)
-    _nonneg(f"{prefix}.min_delta", min_delta)
+        check_integer(f"{prefix}.patience", patience, 1)
+    check_positive(f"{prefix}.min_delta", min_delta, strict=False)
     if float(min_delta) >= 1.0:
         raise ConfigError(f"{prefix}.min_delta={min_delta!r} is a relative improvement and must be in [0, 1)")
     if lr_factor is not None:
         check_positive(f"{prefix}.lr_factor", lr_factor)
         if float(lr_factor) >= 1.0:
             raise ConfigError(f"{prefix}.lr_factor={lr_factor!r} must be in (0, 1) or null (constant learning rate)")
-    _int_field(f"{prefix}.lr_patience", lr_patience, 1)
-    _nonneg(f"{prefix}.min_lr", min_lr)
+    check_integer(f"{prefix}.lr_patience", lr_patience, 1)
+    check_positive(f"{prefix}.min_lr", min_lr, strict=False)
 
 
 def schedule_from_config(c, prefix: str = "lstm") -> dict:

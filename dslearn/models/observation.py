@@ -19,10 +19,19 @@ import math
 import torch
 from torch import Tensor
 
-from dslearn.errors import ConfigError, check_choice, check_positive
+from dslearn.errors import ConfigError, check_choice, check_integer, check_positive
 from dslearn.types import AGENT_DIM
 from dslearn.models.base import ObservationModel
 from dslearn.models.gp_backends import GPBackend, OnlineGP
+
+
+def _misfit(spec, measurement: str, option: str, readings: str = "") -> str | None:
+    """Why ``observation=<option>``, a model of ``measurement`` readings, cannot explain scenario ``spec``'s (``None``
+    where it measures ``measurement``)."""
+    if spec.measurement == measurement:
+        return None
+    return (f"observation={option} explains {readings or measurement + ' readings'}; scenario {spec.name} measures "
+            f"{spec.measurement} (observation=sensor picks the scenario's own sensor model)")
 
 
 class LinearPositionObservation(ObservationModel):
@@ -37,10 +46,7 @@ class LinearPositionObservation(ObservationModel):
     @staticmethod
     def spec_misfit(spec) -> str | None:
         """It explains position readings only (declared: :func:`dslearn.methods.base.declared_misfit`)."""
-        if spec.measurement != "position":
-            return (f"observation=linear explains readings of the targets' positions; scenario {spec.name} measures "
-                    f"{spec.measurement} (observation=sensor picks the scenario's own sensor model)")
-        return None
+        return _misfit(spec, "position", "linear", "readings of the targets' positions")
 
     def __init__(self, noise_std: float = 0.2):
         super().__init__()
@@ -132,9 +138,7 @@ def _positions(key: str, value) -> Tensor:
 
 
 def _samples(value) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ConfigError(f"observation.samples={value!r} must be an integer >= 1 (the scenario's samples per step)")
-    return int(value)
+    return check_integer("observation.samples", value, 1, note=" (the scenario's samples per step)")
 
 
 def _need_scenario(scenario, option: str) -> None:
@@ -164,10 +168,7 @@ class _NodeSensor(ObservationModel):
 
     @classmethod
     def spec_misfit(cls, spec) -> str | None:
-        if spec.measurement != cls.measurement:
-            return (f"observation={cls.option} explains {cls.measurement} readings; scenario {spec.name} measures "
-                    f"{spec.measurement} (observation=sensor picks the scenario's own sensor model)")
-        return None
+        return _misfit(spec, cls.measurement, cls.option)
 
     def __init__(self, sensors, noise_std: float, samples: int = 1):
         super().__init__()
@@ -297,10 +298,7 @@ class TerrainAltitudeObservation(ObservationModel):
 
     @staticmethod
     def spec_misfit(spec) -> str | None:
-        if spec.measurement != "terrain_altitude":
-            return (f"observation=terrain explains terrain_altitude readings; scenario {spec.name} measures "
-                    f"{spec.measurement} (observation=sensor picks the scenario's own sensor model)")
-        return None
+        return _misfit(spec, "terrain_altitude", "terrain")
 
     def __init__(self, elevation, resolution: float, noise_std: float):
         super().__init__()

@@ -14,8 +14,7 @@ What is checked:
   with ``+max_memory_gb=...``); an unknown top-level key fails (known: these, ``task``, and
   every config group under ``conf/``, so groups added later are accepted automatically);
 * ``task._target_`` (a study class the composition root builds, :func:`dslearn.compose.build_study`)
-  or, for a study not converted yet, ``task.entry`` (a function) must be registered
-  (:data:`TASK_TARGETS`: only the project's own studies are ever built) and ``task.name`` a
+  must be registered (:data:`TASK_TARGETS`: only the project's own studies are ever built) and ``task.name`` a
   non-empty string; the rest of ``task`` is the study's settings, checked by its schema;
 * resource guard (core study): the estimated peak memory (:func:`estimate_core_memory`) must
   stay under ``max_memory_gb`` (default: 75 % of this machine's memory), so a run that would
@@ -55,9 +54,8 @@ from dslearn.schemas.base import validate_task  # noqa: E402
 
 CORE_TASKS = ("yu", "yu_faults")
 
-#: the registry of studies: ``task.name`` -> the study class (``task._target_``; a ``module:function``
-#: entry for a study not yet a component). ``dslearn-run`` builds only these, never an arbitrary
-#: importable callable.
+#: the registry of studies: ``task.name`` -> the study class (``task._target_``). ``dslearn-run`` builds
+#: only these, never an arbitrary importable callable.
 TASK_TARGETS: dict[str, str] = {
     "yu": "dslearn.studies.yu.YuStudy",
     "yu_faults": "dslearn.studies.yu_faults.YuFaultsStudy",
@@ -326,12 +324,9 @@ def validate_config(cfg: DictConfig) -> None:
         check_positive("max_memory_gb", r.max_memory_gb)
     if "task" not in cfg or cfg.task is None:
         raise ConfigError("task is missing; choose one with task=<name> or experiment=<study>")
-    key = "_target_" if "_target_" in cfg.task else "entry"
-    for k in (key, "name"):
-        v = cfg.task.get(k)
-        if not isinstance(v, str) or not v:
-            raise ConfigError(f"task.{k}={v!r} must be a non-empty string")
-    check_target(cfg.task[key], key)
+    check_target(cfg.task.get("_target_"))
+    if not isinstance(cfg.task.get("name"), str) or not cfg.task.name:
+        raise ConfigError(f"task.name={cfg.task.get('name')!r} must be a non-empty string")
     check_engine_parts(cfg)
     if cfg.task.name in CORE_TASKS:
         validate_core(cfg)
@@ -423,12 +418,12 @@ def check_engine_parts(cfg: DictConfig) -> None:
         raise ConfigError(f"consensus={name} is {FUSION_KINDS.get(have, have)}; {who} takes "
                           f"{FUSION_KINDS.get(want, want)}: consensus={'|'.join(_kind_options(want))}")
 
-def check_target(target, key: str = "_target_") -> None:
-    """ConfigError unless ``target`` is a registered study (:data:`TASK_TARGETS`)."""
+def check_target(target) -> None:
+    """ConfigError unless ``target`` (``task._target_``) is a registered study (:data:`TASK_TARGETS`)."""
     allowed = sorted(set(TASK_TARGETS.values()))
     if target not in allowed:
         raise ConfigError(
-            f"task.{key}={target!r} is not a registered study; choose one of {allowed} "
+            f"task._target_={target!r} is not a registered study; choose one of {allowed} "
             f"(or pick a study with task=<name> / experiment=<study>)"
         )
 
@@ -642,18 +637,12 @@ def validate_core(cfg: DictConfig) -> None:
         check_choice("observation.mean", ob.mean, ("zero", "constant", "identity"))
         check_choice("observation.noise", ob.noise, ("latent", "predictive"))
     # consensus
-    from dslearn.fusion.strategies import FUSIONS
+    from dslearn.fusion.strategies import FUSIONS, check_consensus
     from dslearn.fusion.weights import WEIGHT_METHODS
 
     check_choice("consensus.name", co.name, FUSIONS)
     check_choice("consensus.weights", co.weights, WEIGHT_METHODS)
-    if co.iterations < 0:
-        raise ConfigError(f"consensus.iterations={co.iterations} must be an integer >= 0")
-    om = co.omega
-    if isinstance(om, str):
-        check_choice("consensus.omega", om, ("one", "nodes"))
-    elif isinstance(om, bool) or not isinstance(om, (int, float)) or not 0 < om < float("inf"):
-        raise ConfigError(f"consensus.omega={om!r} must be > 0 and finite, 'one' or 'nodes'")
+    check_consensus(co.iterations, co.omega)
     # data
     if da.train_episodes < 0:
         raise ConfigError(f"data.train_episodes={da.train_episodes} must be an integer >= 0")
@@ -687,12 +676,13 @@ def check_parts(cfg: DictConfig) -> None:
     """Build the core study's parts from ``cfg`` as the run does, so that every refusal of a
     constructor (which depends on the configuration only) happens in the start-up check.
 
-    Built: the scenario, the network (connectivity), the motion model (``task=yu``; ``yu_faults``
-    composes ``task.models`` itself) and the observation model, on PyTorch's ``meta`` device (shapes
-    only: no memory, whatever the buffer sizes), the fusion (``task=yu``) and the filter's
-    prediction step, checked against the scenario's state dimension (the UKF's ``kappa``) and, for a step
-    that needs a kind of motion model (``check_model``: ``filter=adf``, ``filter=ukf_mm``), against the run's
-    motion model (``task=yu``) or every model of ``task.models`` (``task=yu_faults``). The
+    Built (:func:`_build_parts`, the study's slots): the scenario, the network (connectivity), the motion
+    model (where the study takes the ``model`` slot; ``yu_faults`` composes ``task.models`` itself) and the
+    observation model, on PyTorch's ``meta`` device (shapes only: no memory, whatever the buffer sizes), the
+    fusion (where the study takes the ``fusion`` slot) and the filter's prediction step, checked against the
+    scenario's state dimension (the UKF's ``kappa``) and, for a step that needs a kind of motion model
+    (``check_model``: ``filter=adf``, ``filter=ukf_mm``), against the run's motion model (``task=yu``) or
+    every model of ``task.models`` (``task=yu_faults``). The
     result is memoised by the groups' content (a sweep repeats the same parts). Raises the
     constructors' :class:`ConfigError`; any other exception (a constructor that cannot run on the
     ``meta`` device) is left to the run, which builds the parts for real.
@@ -733,19 +723,21 @@ def check_parts(cfg: DictConfig) -> None:
 
 
 def _build_parts(cfg: DictConfig) -> None:
+    """The parts :func:`check_parts` builds: the run's slots (:func:`dslearn.compose.study_slots`) on the meta
+    device; the motion model and the fusion only where the study names them, a grid's models
+    (``model_options``) only for a step that checks its motion model."""
     import torch
 
     from dslearn import compose as C
 
-    dtype, meta = C.resolve_dtype(cfg.dtype), torch.device("meta")
-    scenario = C.build_scenario(cfg)
-    network = C.build_network(cfg)
-    model = None
-    if str(cfg.task.name) == "yu":
-        model = C.build_motion_model(cfg.model, scenario, network, dtype, meta)
-        C.build_fusion(cfg.consensus, network)
-    C.build_observation(cfg.observation, network, dtype, meta)
-    step = C.build_predict(cfg)
+    takes = C.study_slots(cfg)[1]
+    s = C._Slots(cfg, torch.device("meta"))
+    scenario, network = s["scenario"], s["network"]
+    model = s["model"] if "model" in takes else None
+    if "fusion" in takes:
+        s["fusion"]
+    s["observation"]
+    step = s["predict"]
     check = getattr(step, "check_state_dim", None)
     if check is not None:
         check(scenario.state_dim)
@@ -754,9 +746,9 @@ def _build_parts(cfg: DictConfig) -> None:
         return
     if model is not None:
         check(model, str(cfg.model.get("name", "")) or None)
-    elif "models" in cfg.task:  # task=yu_faults: every model of its grid
-        for name, node in C.group_options("model", [str(m) for m in cfg.task.models]).items():
-            check(C.build_motion_model(node, scenario, network, dtype, meta), name)
+    elif "model_options" in takes:  # task=yu_faults: every model of its grid
+        for name, make in s["model_options"].items():
+            check(make(scenario, network), name)
 
 
 def _check_area(name: str, area) -> None:

@@ -12,11 +12,11 @@ single run stops with it, a sweep records the cell as failed (``matrix_cells.csv
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from omegaconf import DictConfig
 
+from dslearn.compose import _Slots
 from dslearn.errors import ConfigError, DataFormatError
 from dslearn.schemas.base import check_preset_keys, register_task
 from dslearn.studies.matrix import MatrixSettings
@@ -51,21 +51,6 @@ class Cell:
     #: whether ``method`` is the method's label; ``False``: refused by what its engine or parts declare of the spec,
     #: the method was not built (``method`` names its parts, :func:`parts_label`)
     built: bool = True
-
-
-class _MetaSlots:
-    """The composition root's slots (:data:`dslearn.compose.SLOTS`) of one configuration, each built once,
-    on PyTorch's meta device (no memory, no numbers)."""
-
-    def __init__(self, cfg: DictConfig):
-        self.cfg, self._built = cfg, {"device": torch.device("meta")}
-
-    def __getitem__(self, name: str) -> Any:
-        from dslearn.compose import SLOTS
-
-        if name not in self._built:
-            self._built[name] = SLOTS[name](self.cfg, self)
-        return self._built[name]
 
 
 def check_pools(cfg: DictConfig, spec) -> None:
@@ -145,7 +130,7 @@ def parts_label(cfg: DictConfig) -> str:
     return ", ".join(out)
 
 
-def _build_method(slots: "_MetaSlots", spec):
+def _build_method(slots: _Slots, spec):
     """The cell's method built on the meta device (no random draw of the run consumed). A configuration error
     (a bad value, a learner the engine refuses) raises as it is; any other exception is a fault in a part:
     :class:`CellBuildError` naming the scenario and the error."""
@@ -167,13 +152,13 @@ def cell(cfg: DictConfig) -> Cell:
     configuration that cannot be built raises (a bad value: ConfigError; a fault in a part:
     :class:`CellBuildError`), as does one asking for more episodes than a recorded scenario's pools hold
     (:func:`check_pools`)."""
-    slots = _MetaSlots(cfg)
+    slots = _Slots(cfg, torch.device("meta"))
     spec = slots["scenario"].spec
     check_pools(cfg, spec)
     return _cell(slots, spec, label=True)
 
 
-def _label_if_built(slots: _MetaSlots) -> str | None:
+def _label_if_built(slots: _Slots) -> str | None:
     """The method's label where its parts can be built for the cell's scenario, else ``None``: for the row of a
     method already refused by what it declares (never a verdict: an error here only leaves the label unknown)."""
     try:
@@ -183,7 +168,7 @@ def _label_if_built(slots: _MetaSlots) -> str | None:
         return None
 
 
-def _cell(slots: _MetaSlots, spec, label: bool = False) -> Cell:
+def _cell(slots: _Slots, spec, label: bool = False) -> Cell:
     """:func:`cell` on built slots; ``label``: a method refused by its declaration is still built, if it can be, for
     its label (a single run's message; a sweep takes the label from the method's other cells)."""
     reason = declared_reason(slots.cfg, spec)
@@ -260,7 +245,7 @@ def judge(cfg: DictConfig, scenarios: dict | None = None) -> dict:
     rec = {"method": "", "scenario": "", "units": "", "status": "run", "reason": None, "error": None, "built": True}
     if str(cfg.task.get("name")) != "matrix":
         return rec
-    slots = _MetaSlots(cfg)
+    slots = _Slots(cfg, torch.device("meta"))
     key = _scenario_key(cfg) if scenarios is not None else None
     if key is not None and key in scenarios:
         slots._built["scenario"] = scenarios[key]
@@ -379,7 +364,7 @@ def select_cells(combos, compose) -> tuple[list[list[str]], list[dict]]:
             labels.setdefault(_method_key(combo), rec["method"])
     for combo, rec in records:  # a method refused on every scenario of the sweep: its label, where it can be built
         if rec["status"] == "does_not_fit" and not rec["built"] and _method_key(combo) not in labels:
-            own = _label_if_built(_MetaSlots(compose(list(combo))))
+            own = _label_if_built(_Slots(compose(list(combo)), torch.device("meta")))
             if own is not None:
                 labels[_method_key(combo)] = own
     kept, out = [], []

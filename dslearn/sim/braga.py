@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from dslearn.episodes import Episodes, ScenarioSpec
-from dslearn.errors import ConfigError, check_positive
+from dslearn.errors import ConfigError, check_integer, check_keys, check_positive
 from dslearn.fusion.statistics import network_adjacency
 from dslearn.models.jmnls import make_params
 from dslearn.network import SensorNetwork
@@ -77,8 +77,7 @@ class TerrainScenario:
                  v0=(170.0, 170.0), start=(3000.0, 3000.0), formation_spacing: float = 100.0,
                  mu_true=(0.0, 20.0), sigma_true=(1.0, 4.0), pi_true=((0.85, 0.15), (0.4, 0.6)),
                  terrain: dict | None = None, edges=((0, 1), (0, 2), (2, 3)), seed: int = 0):
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-            raise ConfigError(f"scenario.steps={steps!r} must be an integer >= 1")
+        check_integer("scenario.steps", steps, 1)
         check_positive("scenario.dt", dt)
         check_positive("scenario.truth_process_noise", truth_process_noise, strict=False)
         check_positive("scenario.formation_spacing", formation_spacing)
@@ -87,12 +86,8 @@ class TerrainScenario:
                 raise ConfigError(f"scenario.{key}={v!r} must be a list of 2 numbers [m or m/s]")
         if float(torch.as_tensor(v0, dtype=torch.float64).norm()) == 0.0:
             raise ConfigError("scenario.v0 must be non-zero (it sets the formation's heading)")
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise ConfigError(f"scenario.seed={seed!r} must be an integer >= 0")
-        terrain = dict(terrain or {})
-        unknown = sorted(set(terrain) - set(TERRAIN_KEYS))
-        if unknown:
-            raise ConfigError(f"scenario.terrain: unknown key(s) {unknown}; allowed: {list(TERRAIN_KEYS)}")
+        check_integer("scenario.seed", seed, 0)
+        terrain = check_keys("scenario.terrain", terrain or {}, TERRAIN_KEYS)
         t = {"size_m": 25000.0, "resolution_m": 25.0, "smoothing_m": 250.0, "elevation_std_m": 100.0,
              "mean_elevation_m": 500.0, "seed_offset": 0, **terrain}
         for key in ("size_m", "resolution_m", "smoothing_m", "elevation_std_m"):

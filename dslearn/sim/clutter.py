@@ -28,7 +28,7 @@ from torch import Tensor
 from dataclasses import dataclass
 
 from dslearn.episodes import Episodes, ScenarioSpec
-from dslearn.errors import ConfigError, _number, check_positive
+from dslearn.errors import ConfigError, _number, check_flag, check_positive
 from dslearn.network import SensorNetwork
 from dslearn.sim.scenario import SocialForceScenario
 from dslearn.streams import Streams, rand
@@ -105,8 +105,7 @@ class DetectionSpec(ScenarioSpec):
 def check_births(births, birth_until, death_from) -> tuple[bool, float, float]:
     """``births`` a bool, ``birth_until`` in [0, 1), ``death_from`` in (``birth_until``, 1]; else
     :class:`ConfigError` naming the field."""
-    if not isinstance(births, bool):
-        raise ConfigError(f"scenario.births={births!r} must be true or false")
+    check_flag("scenario.births", births)
     lo, hi = _number("scenario.birth_until", birth_until), _number("scenario.death_from", death_from)
     if not 0 <= lo < 1:
         raise ConfigError(f"scenario.birth_until={birth_until!r} must be in [0, 1) (a share of the horizon)")

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from dslearn.episodes import Episodes, ScenarioSpec
-from dslearn.errors import ConfigError, check_positive
+from dslearn.errors import ConfigError, check_integer, check_positive
 from dslearn.network import SensorNetwork
 from dslearn.sim.squared_range import SquaredRange, polynomial_trajectory
 from dslearn.streams import Streams
@@ -73,9 +73,8 @@ class SquaredRangeScenario:
         if self.coefficients.shape[0] != 2:
             raise ConfigError(f"scenario.coefficients has {self.coefficients.shape[0]} rows; the matrix compares "
                               "2-D positions, so the source has 2 parameters (2 rows (a, b, c))")
-        for key, v, low in (("num_timings", num_timings, 2), ("num_samples", num_samples, 1)):
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ConfigError(f"scenario.{key}={v!r} must be an integer >= {low}")
+        check_integer("scenario.num_timings", num_timings, 2)
+        check_integer("scenario.num_samples", num_samples, 1)
         check_positive("scenario.drive_var", drive_var, strict=False)
         check_positive("scenario.sigma_y", sigma_y)
         self.name = str(name)

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from dslearn.episodes import Episodes, ScenarioSpec
-from dslearn.errors import ConfigError, check_positive
+from dslearn.errors import ConfigError, check_integer, check_positive
 from dslearn.network import SensorNetwork, adjacency_from_radius, is_connected
 from dslearn.sim.manoeuvres import measure, sensor_field
 from dslearn.streams import Streams, stream_seed
@@ -115,15 +115,12 @@ class ManoeuvreScenario:
         if not callable(trajectory):
             raise ConfigError(f"scenario.trajectory={trajectory!r} must be a trajectory generator "
                               "(_target_: dslearn.sim.manoeuvres.generate_s1|s2|s3, _partial_: true)")
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 2:
-            raise ConfigError(f"scenario.steps={steps!r} must be an integer >= 2")
-        if isinstance(num_sensors, bool) or not isinstance(num_sensors, int) or num_sensors < 1:
-            raise ConfigError(f"scenario.num_sensors={num_sensors!r} must be an integer >= 1")
+        check_integer("scenario.steps", steps, 2)
+        check_integer("scenario.num_sensors", num_sensors, 1)
         for key, v in (("dt", dt), ("sensing_range", sensing_range), ("area_size", area_size),
                        ("meas_std", meas_std)):
             check_positive(f"scenario.{key}", v)
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise ConfigError(f"scenario.seed={seed!r} must be an integer >= 0")
+        check_integer("scenario.seed", seed, 0)
         self.trajectory = trajectory
         self.name = str(name)
         self.steps = steps

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from dslearn.data.episodes import extract_episodes, split_episodes
 from dslearn.episodes import Episodes
-from dslearn.errors import ConfigError, check_positive
+from dslearn.errors import ConfigError, check_integer, check_positive
 from dslearn.network import SensorNetwork
 from dslearn.settings import ranged
 from dslearn.sim.placement import make_network
@@ -80,8 +80,7 @@ def arena_network(
     Raises:
         ConfigError: bad values, or a disconnected graph (naming the field to change).
     """
-    if not isinstance(k_nearest, int) or k_nearest < 1:
-        raise ConfigError(f"{key}.k_nearest={k_nearest!r} must be an integer >= 1")
+    check_integer(f"{key}.k_nearest", k_nearest, 1)
     pos = perimeter_positions(extent, num_sensors, margin, key)
     try:
         return make_network(

@@ -38,7 +38,7 @@ from torch import Tensor
 from dslearn.data.datasets import CONVENTIONS, check_dataset, dataset_spec, load_dataset
 from dslearn.data.episodes import CRITERIA, EpisodeSet, extract_episodes, split_episodes
 from dslearn.episodes import Episodes, ScenarioSpec
-from dslearn.errors import ConfigError, DataFormatError, check_choice, check_positive
+from dslearn.errors import ConfigError, DataFormatError, check_choice, check_integer, check_keys, check_positive
 from dslearn.network import SensorNetwork
 from dslearn.sim.real import arena_network, scene_extent
 from dslearn.sim.scenario import measure
@@ -82,26 +82,13 @@ class ArenaCut:
 
 def _settings(cls, values: Mapping | None, prefix: str):
     """``cls`` from a mapping of its fields (``None``: the defaults); ConfigError naming ``prefix.<key>``."""
-    if values is None:
-        return cls()
-    if not isinstance(values, Mapping):
-        raise ConfigError(f"{prefix}={values!r} must be a mapping of {[f.name for f in dataclasses.fields(cls)]}")
-    names = [f.name for f in dataclasses.fields(cls)]
-    unknown = sorted(str(k) for k in values if k not in names)
-    if unknown:
-        raise ConfigError(f"{prefix}: unknown key(s) {unknown}; allowed: {names}")
-    return cls(**dict(values))
-
-
-def _integer(key: str, v, low: int) -> None:
-    if isinstance(v, bool) or not isinstance(v, int) or v < low:
-        raise ConfigError(f"{key}={v!r} must be an integer >= {low}")
+    return cls() if values is None else cls(**check_keys(prefix, values, [f.name for f in dataclasses.fields(cls)]))
 
 
 def check_cut(c: EpisodeCut, prefix: str = "scenario.episodes") -> None:
-    _integer(f"{prefix}.agents", c.agents, 2)
-    _integer(f"{prefix}.steps", c.steps, 2)
-    _integer(f"{prefix}.stride", c.stride, 1)
+    check_integer(f"{prefix}.agents", c.agents, 2)
+    check_integer(f"{prefix}.steps", c.steps, 2)
+    check_integer(f"{prefix}.stride", c.stride, 1)
     for key in ("dt", "max_dist"):
         check_positive(f"{prefix}.{key}", getattr(c, key))
     check_positive(f"{prefix}.min_speed", c.min_speed, strict=False)
@@ -113,8 +100,8 @@ def check_cut(c: EpisodeCut, prefix: str = "scenario.episodes") -> None:
 
 
 def check_arena(a: ArenaCut, prefix: str = "scenario.network") -> None:
-    _integer(f"{prefix}.num_sensors", a.num_sensors, 1)
-    _integer(f"{prefix}.k_nearest", a.k_nearest, 1)
+    check_integer(f"{prefix}.num_sensors", a.num_sensors, 1)
+    check_integer(f"{prefix}.k_nearest", a.k_nearest, 1)
     check_positive(f"{prefix}.sensing_range", a.sensing_range)
     check_positive(f"{prefix}.meas_std", a.meas_std)
     check_positive(f"{prefix}.margin", a.margin, strict=False)
@@ -166,7 +153,7 @@ class RecordedScenario:
         check_cut(self.cut)
         arena = _settings(ArenaCut, network, "scenario.network")
         check_arena(arena)
-        _integer("scenario.seed", seed, 0)
+        check_integer("scenario.seed", seed, 0)
         self.name, self.seed, self.convention = str(name), int(seed), str(convention)
         values = dict(dataset)
         root = values.get("root")

@@ -20,7 +20,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from dslearn.errors import ConfigError
+from dslearn.errors import ConfigError, check_choice, check_positive
 from dslearn.linalg import cholesky, cholesky_solve
 from dslearn.learning.factor_graph.messages import linearize, marginal, rho_from_zeta, zeta_natural
 
@@ -87,6 +87,20 @@ def _damp(zp_new: Tensor, zi_new: Tensor, zp_old: Tensor | None, zi_old: Tensor 
     return (1.0 - d) * zp_new + d * zp_old, (1.0 - d) * zi_new + d * zi_old
 
 
+def _expand(h, x: Tensor, lambda_tol: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The Taylor expansion of ``h`` at ``x`` (:func:`linearize`: the slopes ``lam (*B, N, M)`` and the offsets) and
+    its number of near-zero slopes (``|lam| <= lambda_tol`` times the largest slope of its parameter)."""
+    lam, gamma = linearize(h, x)
+    scale = lam.abs().amax(dim=-2, keepdim=True).clamp_min(torch.finfo(lam.dtype).tiny)
+    return lam, gamma, (lam.abs() <= lambda_tol * scale).sum((-1, -2))
+
+
+def _converged(t: int, mean: Tensor, previous: Tensor, converged_at: Tensor, tol: float) -> Tensor:
+    """``converged_at`` set to ``t`` where iteration ``t`` first moved the estimate by less than ``tol`` (max norm)."""
+    newly = ((mean - previous).abs().amax(-1) < tol) & (converged_at > t)
+    return torch.where(newly, torch.full_like(converged_at, t), converged_at)
+
+
 def identify(
     h: Callable[[Tensor], Tensor],
     y_mean: Tensor,
@@ -140,26 +154,20 @@ def identify(
     """
     if int(num_iters) < 1:
         raise ConfigError(f"num_iters={num_iters!r} must be >= 1")
-    if not init_var > 0:
-        raise ConfigError(f"init_var={init_var!r} must be > 0")
-    if not prior_var > 0:
-        raise ConfigError(f"prior_var={prior_var!r} must be > 0")
-    if schedule not in SCHEDULES:
-        raise ConfigError(f"schedule={schedule!r} must be one of {list(SCHEDULES)}")
+    check_positive("init_var", init_var, finite=False)
+    check_positive("prior_var", prior_var, finite=False)
+    check_choice("schedule", schedule, SCHEDULES)
     if not 0.0 <= float(damping) < 1.0:
         raise ConfigError(f"damping={damping!r} must be in [0, 1)")
-    if graph not in GRAPHS:
-        raise ConfigError(f"graph={graph!r} must be one of {list(GRAPHS)}")
+    check_choice("graph", graph, GRAPHS)
     assert y_mean.shape == y_var.shape and beta.shape[:-1] == y_mean.shape[:-1], (y_mean.shape, beta.shape)
     M, N = beta.shape[-1], y_mean.shape[-1]
     init_mean = torch.broadcast_to(init_mean.to(beta), beta.shape)
     prior_prec = 0.0 if prior_var == float("inf") else 1.0 / prior_var
     prior_info = prior_prec * init_mean if prior_prec else 0.0
 
-    lam, gamma = linearize(h, beta)
+    lam, gamma, near_zero = _expand(h, beta, lambda_tol)
     assert lam.shape == (*beta.shape[:-1], N, M), lam.shape
-    scale = lam.abs().amax(dim=-2, keepdim=True).clamp_min(torch.finfo(lam.dtype).tiny)
-    near_zero = (lam.abs() <= lambda_tol * scale).sum((-1, -2))
 
     if graph == "joint":
         return _identify_joint(h, y_mean, y_var, lam, gamma, near_zero, init_mean, int(num_iters), init_var,
@@ -192,15 +200,12 @@ def identify(
         mean, var, f_m = marginal(zp, zi, prior_prec, prior_info, min_precision)         # Eqs. 15-16
         mean = torch.where(f_m, init_mean, mean)  # nothing informs x_m: keep the guess
         floored = floored + f_r.sum((-1, -2)) + f_m.sum(-1)
-        moved = (mean - means[-1]).abs().amax(-1)
-        newly = (moved < tol) & (converged_at > t)
-        converged_at = torch.where(newly, torch.full_like(converged_at, t), converged_at)
+        converged_at = _converged(t, mean, means[-1], converged_at, tol)
         means.append(mean)
         vars_.append(var)
         if relinearize and t < num_iters:
-            lam, gamma = linearize(h, mean)
-            scale = lam.abs().amax(dim=-2, keepdim=True).clamp_min(torch.finfo(lam.dtype).tiny)
-            near_zero = near_zero + (lam.abs() <= lambda_tol * scale).sum((-1, -2))
+            lam, gamma, more = _expand(h, mean, lambda_tol)
+            near_zero = near_zero + more
     return IdentificationResult(torch.stack(means), torch.stack(vars_), near_zero, floored, converged_at)
 
 
@@ -231,13 +236,10 @@ def _identify_joint(
         mean = cholesky_solve(info_vec.unsqueeze(-1), chol).squeeze(-1)
         var = cholesky_solve(eye.expand_as(info_mat), chol).diagonal(dim1=-2, dim2=-1)
         floored = floored + f_m.sum(-1)
-        moved = (mean - means[-1]).abs().amax(-1)
-        newly = (moved < tol) & (converged_at > t)
-        converged_at = torch.where(newly, torch.full_like(converged_at, t), converged_at)
+        converged_at = _converged(t, mean, means[-1], converged_at, tol)
         means.append(mean)
         vars_.append(var)
         if relinearize and t < num_iters:
-            lam, gamma = linearize(h, mean)
-            scale = lam.abs().amax(dim=-2, keepdim=True).clamp_min(torch.finfo(lam.dtype).tiny)
-            near_zero = near_zero + (lam.abs() <= lambda_tol * scale).sum((-1, -2))
+            lam, gamma, more = _expand(h, mean, lambda_tol)
+            near_zero = near_zero + more
     return IdentificationResult(torch.stack(means), torch.stack(vars_), near_zero, floored, converged_at)
