@@ -45,6 +45,16 @@ on the belief's device and in its dtype (so a CPU and a GPU run draw different p
 are made before the model is evaluated, and the model is evaluated in chunks of particles
 (:data:`CHUNK_ELEMENTS`), so the chunking changes the numbers by rounding only.
 
+GPs without data: while no node's exact GP holds a valid point
+(:meth:`~dslearn.models.gp_backends.exact.OnlineGP.void_nodes`; Liu's 200 sensors, whose learning gate admits
+nothing), the predictive at every particle is the prior's, an affine
+mean (``zero``, ``constant``, ``identity``, ``constant_velocity``) and a constant diagonal noise, so the particles
+are i.i.d. Gaussian and the moment-matched cloud has a known law: its mean Gaussian and, independent of it, its
+scatter Wishart. The step then draws these two from that law (:func:`_void_moments`: ``O(Dx^2)`` draws per node and
+episode instead of ``2 N Dx``); the numbers change in their random realisation only, not in distribution (tested
+against the particles, ``tests/test_particle_speed.py``), and ``F`` is the prior mean's Jacobian, which the
+particles' regression recovers up to rounding. Wherever some node holds data, every particle is drawn as above.
+
 Batched over nodes, episodes and particles (no Python loop over any of them); differentiable where the model
 is (the draws are reparameterised), which the backprop learner uses. Jitter that a near-singular belief or
 predicted covariance needs is recorded like the other steps' (:func:`~dslearn.types.safe_cholesky`).
@@ -148,6 +158,67 @@ def _propagate(model: MotionModel, x: Tensor, w: Tensor, P: Tensor, ctx: StepCon
     return f, f + (R @ w.unsqueeze(-1)).squeeze(-1)
 
 
+def _void_prior(model: MotionModel, mean: Tensor, particles: int) -> tuple[Tensor, Tensor, Tensor] | None:
+    r"""Where every node's GP holds no valid point (the predictive is the prior at any input) and the prior mean is
+    affine (``zero``, ``constant``, ``identity``, ``constant_velocity``): the prior's mean :math:`f(\hat y)` at the
+    belief's mean ``(S, B, Dx)``, its Jacobian :math:`A` ``(S, B, Dx, Dx)`` (constant) and the diagonal noise
+    :math:`D` ``(S, 1, Dx)`` that :func:`_propagate` adds at every particle (the prior's latent variance, the noise
+    mode's terms included). ``None`` for anything else (a node with data, another model or backend, the ``meta``
+    device, ``particles <= 2 Dx``): the particles are drawn."""
+    from dslearn.models.gp_backends.means import ConstantVelocityMean, IdentityMean, ZeroMean
+
+    gpm = _gp_model(model)
+    if gpm is None or mean.device.type == "meta" or particles <= 2 * mean.shape[-1]:
+        return None
+    gp = gpm.gp
+    if not (callable(getattr(gp, "void_nodes", None)) and callable(getattr(gp, "prior_variance", None))):
+        return None
+    module = getattr(gp, "mean_module", None)
+    affine = (module is None and getattr(gp, "mean_type", None) == "constant") or \
+        type(module) in (ZeroMean, IdentityMean, ConstantVelocityMean)
+    if not affine or (gp.num_nodes, gp.output_dim) != (mean.shape[0], mean.shape[-1]):
+        return None
+    if not bool(gp.void_nodes().all()):
+        return None
+    s, b, dx = mean.shape
+    f = gp.prior_mean(mean).to(mean.dtype)  # (S, B, Dx): predict's mean where k_* = 0
+    A = gp.prior_mean_jacobian(mean).to(mean.dtype).expand(s, b, dx, dx)
+    var = gp.prior_variance().unsqueeze(-1)  # (S, 1): as predict's (S, B n) latent variance, one query
+    if gpm.noise_mode == "predictive":
+        var = var + gpm.gp.noise_var.to(var).unsqueeze(-1)
+    d = (var.unsqueeze(-1) + gpm.extra_noise(var).to(var).unsqueeze(1)).clamp_min(0.0).to(mean.dtype)  # (S, 1, Dx)
+    return f, A, d
+
+
+def _void_moments(mean: Tensor, L: Tensor, prior: tuple[Tensor, Tensor, Tensor], N: int,
+                  generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+    r"""The moment-matched cloud of :math:`N` particles through an affine model with a constant diagonal noise,
+    drawn from its exact law instead of particle by particle. The particles are :math:`y_i = f(\hat y) + R u_i`
+    with :math:`R = (A L,\ D^{1/2})` (``Dx x 2Dx``) and :math:`u_i = (z_i, w_i)` i.i.d. :math:`\mathcal N(0, I_{2Dx})`,
+    so their mean is :math:`f(\hat y) + R \bar u` and their scatter :math:`(N-1) P^{t|t-1} = R\, W R^T` with
+    :math:`\bar u \sim \mathcal N(0, I/N)` and, independent of it, the scatter of the :math:`u_i`,
+    :math:`W \sim` Wishart :math:`(I_{2Dx}, N-1)`, drawn as :math:`T T^T` with Bartlett's factor :math:`T` (lower
+    triangular, :math:`T_{kk}^2 \sim \chi^2_{N-1-k}`, :math:`T_{kj} \sim \mathcal N(0, 1)` below the diagonal;
+    ``N > 2 Dx``). ``2Dx + Dx (2Dx - 1)`` normals and ``2Dx`` gamma draws per node and episode instead of ``2 N Dx``
+    normals, and no factorisation. Returns ``(y_pred (S, B, Dx), P_pred (S, B, Dx, Dx))``."""
+    f, A, d = prior
+    *batch, dx = mean.shape
+    k = 2 * dx
+    R = torch.cat([A @ L, torch.diag_embed(d.sqrt()).expand(*batch, dx, dx)], -1)  # (S, B, Dx, 2Dx)
+    kw = dict(generator=generator, dtype=mean.dtype, device=mean.device)
+    u = torch.randn((*batch, k), **kw)
+    rows, cols = torch.tril_indices(k, k, -1, device=mean.device)
+    below = torch.randn((*batch, rows.numel()), **kw)
+    dof = (N - 1) - torch.arange(k, dtype=mean.dtype, device=mean.device)  # chi^2_{N-1-k} = 2 Gamma((N-1-k)/2)
+    chi2 = 2.0 * torch._standard_gamma((0.5 * dof).expand(*batch, k).contiguous(), generator=generator)
+    T = torch.diag_embed(chi2.sqrt())
+    T[..., rows, cols] = below
+    y_pred = f + (R @ u.unsqueeze(-1)).squeeze(-1) / math.sqrt(N)
+    RT = R @ T
+    P_pred = symmetrize(RT @ RT.transpose(-1, -2) / (N - 1))
+    return y_pred, P_pred
+
+
 def _psd_floor(Q: Tensor) -> Tensor:
     """``Q`` with negative eigenvalues set to 0, for the matrices that have any (the rest untouched)."""
     lam, V = torch.linalg.eigh(Q)
@@ -175,6 +246,16 @@ def pf_predict(mean: Tensor, omega: Tensor, model: MotionModel, ctx: StepContext
     P = spd_inverse(omega)
     L = safe_cholesky(P)  # jitter (recorded) where the belief is near-singular
     *batch, dx = mean.shape
+    prior = _void_prior(model, mean, N) if len(batch) == 2 else None
+    if prior is not None:  # every node's GP is its (affine) prior: the cloud's moments drawn directly
+        y_pred, P_pred = _void_moments(mean, L, prior, N, generator)
+        omega_pred = spd_inverse(P_pred)  # jitter (recorded) where the cloud is degenerate
+        q_pred = (omega_pred @ y_pred.unsqueeze(-1)).squeeze(-1)
+        if not full:
+            return y_pred, q_pred, omega_pred
+        F = prior[1].clone()  # the particles' regression of f(x_i) = A x_i + c on x_i: A itself
+        Q = _psd_floor(symmetrize(P_pred - F @ P @ F.transpose(-1, -2)))
+        return y_pred, q_pred, omega_pred, P_pred, F, Q
     # every draw of the call first (particles, then noise), so that the chunks below cannot change them
     z = torch.randn((*batch, 2, N, dx), generator=generator, dtype=mean.dtype, device=mean.device)
     x = mean.unsqueeze(-2) + z[..., 0, :, :] @ L.transpose(-1, -2)  # (S, B, N, Dx): x_i = m + L z_i

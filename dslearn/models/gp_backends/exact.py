@@ -419,6 +419,17 @@ class OnlineGP(PriorMean, nn.Module):
         self._alpha = self.A[:, : n + 1]
         self._last = None
 
+    def void_nodes(self) -> Tensor:
+        """``(S,)`` bool: the nodes that hold no valid point. Their :meth:`predict` is the prior at any input
+        (``k_* = 0``): mean :meth:`prior_mean`, latent variance :meth:`prior_variance`, Jacobian
+        :meth:`prior_mean_jacobian`. A read of the mask, nothing computed (a host read on the CPU)."""
+        return ~self.mask[:, : self.n].any(-1)
+
+    def prior_variance(self) -> Tensor:
+        r"""``(S,)`` the prior's latent variance :math:`k(x, x) = \sigma_f^2` (the RBF kernel's, at any input), the
+        value :meth:`predict` gives where ``k_* = 0``."""
+        return self._os
+
     def _void(self) -> bool:
         """No node holds a valid point (and the shortcuts are on, on the CPU)."""
         return self.skip_void and not self._any_valid and self.device_.type == "cpu"
