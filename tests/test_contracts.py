@@ -122,18 +122,13 @@ TASKS = {"braga_tbn": "BragaTask", "ethucy_forecast": "EthucyForecastTask", "eth
          "matrix": "MatrixSettings", "gp_bayes_filters": "GPBayesTask"}
 
 
-def _check_task(option, cfg, world):  # the study's schema and its class (or entry point) in dslearn.studies.<task>
+def _check_task(option, cfg, world):  # the study's schema and its class in dslearn.studies.<task>
     import importlib
 
     assert cfg.task.name == option and OmegaConf.get_type(cfg.task).__name__ == TASKS[option]
-    if "_target_" in cfg.task:  # a component: a class with a run(diagnostics, progress) method
-        module, _, name = cfg.task._target_.rpartition(".")
-        assert module == f"dslearn.studies.{option}"
-        assert callable(getattr(getattr(importlib.import_module(module), name), "run"))
-    else:
-        module, fn = cfg.task.entry.split(":")
-        assert module == f"dslearn.studies.{option}" and fn == "run"
-        assert callable(getattr(importlib.import_module(module), fn))
+    module, _, name = cfg.task._target_.rpartition(".")  # a component: a class with a run(diagnostics, progress)
+    assert module == f"dslearn.studies.{option}"
+    assert callable(getattr(getattr(importlib.import_module(module), name), "run"))
     validate_config(cfg)
 
 
@@ -464,11 +459,12 @@ def _check_method(option, cfg, world):
             assert cfg.learner == plain
             return
         # the motion model's own parameters with R, the weights and omega (and Q where the model has one)
-        assert {k: v for k, v in cfg.learner.items() if k not in ("learn", "model_lr")} == \
-            {k: v for k, v in plain.items() if k not in ("learn", "model_lr")}
+        assert {k: v for k, v in cfg.learner.items() if k not in ("learn", "model_lr", "chunk")} == \
+            {k: v for k, v in plain.items() if k not in ("learn", "model_lr", "chunk")}
         q = [] if "_gp_" in option else ["q"]
         assert list(cfg.learner.learn) == ["model", *q, "r", "weights", "omega"]
         assert cfg.learner.model_lr == (1e-4 if "_lstm_" in option else None)
+        assert cfg.learner.chunk is None  # every episode of a step in one backward pass (learner.chunk: the option)
         return
     if option.endswith("_calibrated"):  # a preset's parts, a scale of Q and of R fitted to the training innovations
         base = option.removesuffix("_calibrated")
@@ -559,9 +555,10 @@ def _check_learner(option, cfg, world):
         task = _compose("experiment=liu_table1").task
         assert cfg.learner.hyper == task.hyper
     elif option == "backprop":  # its settings (conf/learner/backprop.yaml) as the learner holds them
-        assert set(cfg.learner) == {"_target_", "epochs", "lr", "batch", "loss", "learn", "train_fusion", "model_lr"}
-        assert (obj.epochs, obj.lr, obj.batch, obj.loss, obj.learn, obj.train_fusion, obj.model_lr) == (
-            30, 0.05, None, "innovation", ["q", "r", "weights", "omega"], "consensus", None)
+        assert set(cfg.learner) == {"_target_", "epochs", "lr", "batch", "loss", "learn", "train_fusion", "model_lr",
+                                    "chunk"}
+        assert (obj.epochs, obj.lr, obj.batch, obj.loss, obj.learn, obj.train_fusion, obj.model_lr, obj.chunk) == (
+            30, 0.05, None, "innovation", ["q", "r", "weights", "omega"], "consensus", None, None)
     elif option == "calibrate":  # its settings (conf/learner/calibrate.yaml) as the learner holds them
         assert (obj.fit, obj.points, obj.decades, obj.zooms, obj.shifts, obj.warmup, obj.tolerance, obj.holdout,
                 obj.max_batch) == (["q", "r"], 9, 4.0, 3, 4, 2, 1.92, 0.5, 20000)

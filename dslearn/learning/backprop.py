@@ -34,6 +34,11 @@ Losses: ``innovation`` (measurements only, Yu et al.'s setting): the negative lo
 innovations :math:`\nu = z - H\hat y^{t|t-1}`, :math:`\nu \sim \mathcal N(0, H P^{t|t-1} H^T + R)`, summed over the
 nodes, targets seen and steps and divided by the number of terms; ``supervised``: the mean squared error of the
 nodes' position estimates to the true positions (training episodes with truth).
+
+Memory: ``chunk`` episodes per backward pass (:func:`fit`): a step's gradient accumulated chunk by chunk, each
+chunk's loss sum divided by the whole step's term count, is the step's full-batch gradient, in one chunk's graph.
+What does not shrink with the episodes is the parameters' own graph, rebuilt per chunk: an exact GP's factorised
+posterior holds a few ``(S, n, n)`` matrices of its ``S`` nodes' ``n`` data points.
 """
 
 from __future__ import annotations
@@ -661,6 +666,27 @@ def supervised_mse(result: TrackResult, states: Tensor, first_step: int = 1) -> 
     return (est - truth).pow(2).sum(-1).mean()
 
 
+def supervised_sse(result: TrackResult, states: Tensor, first_step: int = 1) -> tuple[Tensor, int]:
+    """Sum and count of the squared errors :func:`supervised_mse` averages (its terms: nodes, episodes, steps
+    ``>= first_step``, targets), for a chunk of a step's episodes."""
+    est = agents(result.mean[:, :, first_step:])[..., :2]  # (S, B, K', A, 2)
+    truth = agents(states[:, first_step:])[..., :2].unsqueeze(0)
+    sq = (est - truth).pow(2).sum(-1)
+    return sq.sum(), sq.numel()
+
+
+def loss_terms(meas: Measurements, idx: Tensor, loss: str, first_step: int = 2) -> float:
+    """The number of terms the loss of the episodes ``idx`` is normalised by, known before any pass (it depends on
+    no learned number): the innovations of the visible targets at the steps ``t >= first_step`` (``innovation``,
+    at least 1 as the loss clamps it), or every node's, episode's, step's (``>= 1``) and target's squared error
+    (``supervised``)."""
+    vis = meas.visible[:, idx]  # (S, B, K+1, A)
+    if loss == "innovation":
+        return max(float(vis[:, :, first_step:].sum()), 1.0)
+    s, b, k1, a = vis.shape
+    return float(s * b * max(k1 - 1, 0) * a)
+
+
 # ------------------------------------------------------------------------------------------------- training
 @dataclass
 class FitHistory:
@@ -675,14 +701,26 @@ class FitHistory:
 def fit(params: BackpropParameters, train: Episodes | Measurements, network, ctx: StepContext,
         init: Callable[[Measurements, Fusion], tuple[Tensor, Tensor]], *, epochs: int = 50, lr: float = 0.05,
         batch: int | None = None, loss: str = "innovation", seed: int = 0, first_step: int = 2,
-        predict_step=None, optimizer: str = "adam", model_lr: float | None = None) -> FitHistory:
+        predict_step=None, optimizer: str = "adam", model_lr: float | None = None,
+        chunk: int | None = None) -> FitHistory:
     """Adam on the learnable parameters; each epoch visits the training episodes once in a seeded random order,
     ``batch`` episodes per step (``None``: all). ``optimizer=lbfgs``: full-batch L-BFGS (strong Wolfe line
     search), ``epochs`` outer steps of up to 20 iterations each, ``lr`` its initial step.
     ``loss=supervised`` needs :class:`~dslearn.episodes.Episodes`. ``model_lr``: Adam's step size for the motion
-    model's own parameters (``None``: ``lr``; an LSTM's weights want a far smaller one than the log-noises)."""
+    model's own parameters (``None``: ``lr``; an LSTM's weights want a far smaller one than the log-noises).
+
+    ``chunk``: episodes per backward pass (``None``: all of the step's episodes in one pass). A step's episodes
+    are then tracked ``chunk`` at a time, each chunk's loss sum divided by the whole step's term count
+    (:func:`loss_terms`) and backpropagated at once, so that its graph is freed before the next chunk; the
+    gradients accumulate to the step's full-batch gradient (exactly in exact arithmetic: the episodes are
+    independent given the parameters, and the loss is a sum over them divided by a count no parameter moves),
+    then one optimiser step. Peak memory is one chunk's graph instead of the step's. The parameters' own parts
+    (a GP's factorised posterior, ``W^L``) are rebuilt per chunk. Exact for the deterministic prediction steps;
+    the particle step draws its particles per pass, so chunks draw other particles than the whole batch would."""
     check_choice("learner.loss", loss, LOSSES)
     check_choice("learner.optimizer", optimizer, OPTIMIZERS)
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ConfigError(f"learner.chunk={chunk!r} must be an integer >= 1 or null (all of a step's episodes)")
     if loss == "supervised" and not isinstance(train, Episodes):
         raise ConfigError("learner.loss=supervised needs training episodes with their true states")
     meas = train.measurements if isinstance(train, Episodes) else train
@@ -699,15 +737,35 @@ def fit(params: BackpropParameters, train: Episodes | Measurements, network, ctx
             return run.nll_sum / run.nll_count.clamp_min(1.0)
         return supervised_mse(run.result, train.states[idx])
 
+    def accumulate(idx: Tensor) -> Tensor:
+        """The step's loss on the episodes ``idx``, its gradient accumulated into ``.grad`` (``chunk`` episodes per
+        backward pass, each chunk's share scaled by the step's term count: the full-batch gradient)."""
+        if chunk is None or chunk >= len(idx):
+            value = objective(idx)
+            value.backward()
+            return value.detach()
+        terms = loss_terms(meas, idx, loss, first_step)
+        total, counted = torch.zeros((), dtype=meas.meas.dtype, device=meas.meas.device), 0.0
+        for part in idx.split(int(chunk)):
+            run = run_filter(params, meas.select(part), network, ctx, init, first_step, predict_step)
+            if loss == "innovation":
+                s, c = run.nll_sum, float(run.nll_count)
+            else:
+                s, c = supervised_sse(run.result, train.states[part])
+            (s / terms).backward()
+            total, counted = total + s.detach(), counted + c
+            del run, s
+        if max(counted, 1.0) != terms:  # the count known up front is the one the passes summed
+            raise RuntimeError(f"learner.chunk: the chunks counted {counted} loss terms, the step {terms}")
+        return total / terms
+
     if optimizer == "lbfgs":
         opt = torch.optim.LBFGS(trainable, lr=lr, max_iter=20, line_search_fn="strong_wolfe")
         every = torch.arange(n, device=meas.meas.device)
 
         def closure():
             opt.zero_grad()
-            value = objective(every)
-            value.backward()
-            return value
+            return accumulate(every)
 
         for _ in range(epochs):
             t0 = time.perf_counter()
@@ -725,10 +783,9 @@ def fit(params: BackpropParameters, train: Episodes | Measurements, network, ctx
         for i in range(0, n, size):
             idx = order[i:i + size].to(meas.meas.device)
             opt.zero_grad()
-            value = objective(idx)
-            value.backward()
+            value = accumulate(idx)
             opt.step()
-            total += float(value.detach()) * len(idx)
+            total += float(value) * len(idx)
         hist.loss.append(total / n)
         hist.seconds.append(time.perf_counter() - t0)
     return hist
@@ -752,6 +809,9 @@ class BackpropLearning(Learner):
             each node offline, then run consensus"; learns no consensus numbers, so ``learn`` lists neither
             ``weights`` nor ``omega``).
         model_lr: Adam's step size for the motion model's own parameters (``learn: [model]``); ``null``: ``lr``.
+        chunk: episodes per backward pass within a step (``null``: all of the step's ``batch`` episodes at once).
+            The same gradient, accumulated chunk by chunk (each chunk's loss scaled by the step's term count),
+            then one step: memory for one chunk's graph instead of the step's (:func:`fit`).
     """
 
     name: ClassVar[str] = "backprop"
@@ -767,6 +827,7 @@ class BackpropLearning(Learner):
     learn: Any = field(default_factory=lambda: ["q", "r", "weights", "omega"])
     train_fusion: str = "consensus"
     model_lr: Any = None
+    chunk: Any = None
 
     def __post_init__(self) -> None:
         if isinstance(self.epochs, bool) or not isinstance(self.epochs, int) or self.epochs < 0:
@@ -779,6 +840,10 @@ class BackpropLearning(Learner):
         if self.batch is not None and (isinstance(self.batch, bool) or not isinstance(self.batch, int)
                                        or self.batch < 1):
             raise ConfigError(f"learner.batch={self.batch!r} must be an integer >= 1 or null (all episodes)")
+        if self.chunk is not None and (isinstance(self.chunk, bool) or not isinstance(self.chunk, int)
+                                       or self.chunk < 1):
+            raise ConfigError(f"learner.chunk={self.chunk!r} must be an integer >= 1 or null (all of a step's "
+                              f"episodes in one backward pass)")
         check_choice("learner.loss", self.loss, LOSSES)
         learn = [self.learn] if isinstance(self.learn, str) else list(self.learn or [])
         bad = [k for k in learn if k not in LEARNABLE]
