@@ -20,6 +20,11 @@ from dslearn.models.base import MotionModel
 from dslearn.models.social_force import SocialForce
 from dslearn.types import POS, VEL, StepContext, agents
 
+#: the default grids of the fit's search (:func:`fit_social_force`)
+TAU_GRID = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+ALPHA_GRID = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)
+BETA_GRID = (0.25, 0.5, 1.0, 2.0, 4.0)
+
 
 def episode_social_force(num_agents: int, tau: float = 1.0, alpha: float = 0.0, beta: float = 1.0,
                          noise_std: float = 0.1) -> SocialForce:
@@ -33,6 +38,28 @@ def episode_social_force(num_agents: int, tau: float = 1.0, alpha: float = 0.0, 
 def desired_velocity(states: Tensor, desired_steps: int = 1) -> Tensor:
     """Each agent's mean velocity over the first ``desired_steps`` states: ``(B, K+1, 4A) -> (B, A, 2)``."""
     return agents(states[:, :desired_steps])[..., VEL].mean(1)
+
+
+def measured_desired_velocity(meas: Tensor, visible: Tensor, dt: float, desired_steps: int = 1) -> Tensor:
+    """Each agent's velocity from measurements alone: ``(S, B, K+1, A, 2)``, ``(S, B, K+1, A)`` -> ``(B, A, 2)``.
+
+    At every step the agent's measured position is the mean of the readings of the nodes that see it; the velocity
+    is the difference between its first measured step and its ``desired_steps``-th measured step after that, over
+    the time between them (``desired_steps = 1`` with the agent seen at t = 0 and t = 1: the velocity of the
+    filter's first observations). An agent measured at fewer steps gets 0."""
+    w = visible.to(meas.dtype).unsqueeze(-1)
+    n = w.sum(0)                                                   # (B, K+1, A, 1) nodes that see the agent
+    pos = (meas * w).sum(0) / n.clamp_min(1.0)                     # (B, K+1, A, 2)
+    seen = n[..., 0] > 0                                           # (B, K+1, A)
+    count = seen.long().cumsum(1)
+    first = (seen & (count == 1)).long().argmax(1)                 # (B, A) the first measured step
+    later = seen & (count == int(desired_steps) + 1)
+    found = later.any(1)
+    last = later.long().argmax(1)
+    p0 = pos.gather(1, first[:, None, :, None].expand(-1, 1, -1, 2))[:, 0]
+    p1 = pos.gather(1, last[:, None, :, None].expand(-1, 1, -1, 2))[:, 0]
+    span = ((last - first).clamp_min(1) * float(dt)).to(meas.dtype)[..., None]
+    return torch.where(found[..., None], (p1 - p0) / span, torch.zeros_like(p0))
 
 
 def _rollout_error(model: SocialForce, states: Tensor, ctx: StepContext) -> Tensor:
@@ -49,9 +76,9 @@ def fit_social_force(
     states: Tensor,
     dt: float,
     desired_steps: int = 1,
-    tau_grid=(0.25, 0.5, 1.0, 2.0, 4.0, 8.0),
-    alpha_grid=(0.0, 0.5, 1.0, 2.0, 4.0, 8.0),
-    beta_grid=(0.25, 0.5, 1.0, 2.0, 4.0),
+    tau_grid=TAU_GRID,
+    alpha_grid=ALPHA_GRID,
+    beta_grid=BETA_GRID,
     refine_iters: int = 150,
     refine_lr: float = 0.05,
 ) -> tuple[dict[str, float], float]:
@@ -146,9 +173,9 @@ class FittedSocialForce(SocialForce):
         noise_std: float = 0.1,
         train_on: str | None = "truth",
         desired_steps: int = 1,
-        tau_grid=(0.25, 0.5, 1.0, 2.0, 4.0, 8.0),
-        alpha_grid=(0.0, 0.5, 1.0, 2.0, 4.0, 8.0),
-        beta_grid=(0.25, 0.5, 1.0, 2.0, 4.0),
+        tau_grid=TAU_GRID,
+        alpha_grid=ALPHA_GRID,
+        beta_grid=BETA_GRID,
         refine_iters: int = 150,
         refine_lr: float = 0.05,
         *,
@@ -157,12 +184,11 @@ class FittedSocialForce(SocialForce):
     ) -> "FittedSocialForce":
         """The config factory: one agent block per agent of ``scenario``, the fit's settings
         (:func:`fit_social_force`'s arguments). ConfigError naming ``model.<key>`` for a bad value."""
-        from dslearn.errors import ConfigError, check_choice, check_positive
+        from dslearn.errors import ConfigError, check_choice, check_integer, check_positive
 
         if train_on is not None:
             check_choice("model.train_on", train_on, ("truth", "fused"))
-        if isinstance(desired_steps, bool) or not isinstance(desired_steps, int) or desired_steps < 1:
-            raise ConfigError(f"model.desired_steps={desired_steps!r} must be an integer >= 1")
+        check_integer("model.desired_steps", desired_steps, 1)
         steps = getattr(scenario, "steps", None)
         if steps is not None and desired_steps > int(steps) + 1:
             raise ConfigError(f"model.desired_steps={desired_steps} must be <= the episodes' {int(steps) + 1} states")
@@ -172,8 +198,7 @@ class FittedSocialForce(SocialForce):
                 raise ConfigError(f"model.{name} must list at least one value")
             for i, v in enumerate(grid):
                 check_positive(f"model.{name}[{i}]", v, strict=positive)
-        if isinstance(refine_iters, bool) or not isinstance(refine_iters, int) or refine_iters < 0:
-            raise ConfigError(f"model.refine_iters={refine_iters!r} must be an integer >= 0")
+        check_integer("model.refine_iters", refine_iters, 0)
         check_positive("model.refine_lr", refine_lr)
         model = cls([[0.0, 0.0]] * int(scenario.num_agents), 1.0, 0.0, 1.0, noise_std)
         model.train_on = train_on
@@ -209,3 +234,7 @@ class FittedSocialForce(SocialForce):
 
     def begin_episodes(self, states: Tensor) -> None:
         self.set_desired(desired_velocity(states, self.fit_settings["desired_steps"]))
+
+    def begin_measured(self, meas: Tensor, visible: Tensor, dt: float) -> None:
+        """Desired velocities from the measurements alone (:func:`measured_desired_velocity`): the matrix's protocol."""
+        self.set_desired(measured_desired_velocity(meas, visible, dt, self.fit_settings["desired_steps"]))

@@ -153,7 +153,7 @@ class DistributedFilter:
             torch.manual_seed(seed)
             hist = fit(params, train.to(torch.float64, train.meas.device), network, ctx, init, epochs=lr.epochs,
                        lr=lr.lr, batch=lr.batch, loss=lr.loss, seed=seed, predict_step=self.predict,
-                       model_lr=lr.model_lr)
+                       model_lr=lr.model_lr, chunk=lr.chunk)
         self.learned = {**params.summary(), "loss": hist.loss, "seconds_per_epoch": hist.seconds_per_epoch}
         _LOG.info("learner=backprop: %s", {k: v for k, v in self.learned.items() if k != "loss"})
         model, obs, fusion = params.detached()
@@ -303,6 +303,8 @@ class DistributedFilter:
         self._fit_motion(model, train, ctx, seed)
         if self.learner.learns_online and learner.learnable:  # Algorithm 1 (offline: a learning observation model)
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())  # no evaluation at checkpoints
+        for m in {id(self.model): self.model, id(model): model}.values():  # a model conditioned per episode (the
+            m.begin_measured(test.meas, test.visible, ctx.dt)              # fitted social force's desired velocities)
         res = learner.estimate(test)
         if scenario.spec.navigates_itself:  # each node's estimate of its own platform: one report of every platform
             return own_estimates(res.mean, res.info, scenario.spec.num_agents)

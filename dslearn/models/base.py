@@ -107,6 +107,11 @@ class MotionModel(nn.Module, abc.ABC):
         per episode on what the protocol gives it (the fitted social force's desired velocities:
         the velocity at t = 0, the state every roll-out starts from). No-op by default."""
 
+    def begin_measured(self, meas: Tensor, visible: Tensor, dt: float) -> None:
+        """The same for a protocol that gives the filter measurements only (the matrix): the episodes about to be
+        tracked as the network measures them, ``meas (S, B, K+1, A, 2)`` and ``visible (S, B, K+1, A)``, with the
+        scenario's step ``dt``. No-op by default."""
+
     def save(self, path: str | Path) -> None:
         """Save parameters and data: ``torch.save`` of ``{format, class, state_dict}`` (plain tensors)."""
         torch.save(self._checkpoint(), path)
