@@ -203,6 +203,25 @@ def test_the_identification_recovers_a_simulated_model_and_stops_at_its_fixed_po
     torch.testing.assert_close(scalar.theta, out.theta, rtol=0, atol=1e-6)
 
 
+def test_a_round_from_the_fixed_point_stops_once_its_step_is_below_the_tolerance(monkeypatch):
+    """Started at its own estimate, the identification's line search halves a step that cannot lower the criterion
+    only until it is shorter than converge_tol (then it stays there), not max_halvings times."""
+    import dslearn.learning.factor_graph.motion as M
+
+    z, n = _simulate(0.9, 0.6, 30, 20, seed=3)
+    m0, p0 = _start(30)
+    kw = dict(iterations=20, rounds=30, init_var=100.0, prior_var=float("inf"), schedule="flooding", damping=0.0,
+              graph="joint", lambda_tol=1e-8)
+    first = identify_motion(z, n, DT, SIGMA, m0, p0, [1.0, 0.0], converge_tol=1e-12, **kw)
+    calls = []
+    real = M.kalman
+    monkeypatch.setattr(M, "kalman", lambda *a, **k: calls.append(k.get("slopes", False)) or real(*a, **k))
+    again = identify_motion(z, n, DT, SIGMA, m0, p0, first.theta.tolist(), converge_tol=1e-3, **kw)
+    torch.testing.assert_close(again.theta, first.theta, rtol=0, atol=1e-3)
+    # one pass with slopes per round, and at most a few halvings from a step of the order of the tolerance
+    assert calls.count(True) <= 2 and calls.count(False) <= 12, calls
+
+
 def test_the_identification_without_measurements_keeps_its_guess():
     z, n = torch.zeros(2, 3, 2, dtype=F64), torch.zeros(2, 3, dtype=F64)
     out = identify_motion(z, n, DT, SIGMA, *_start(2), [0.7, -1.0], iterations=3, rounds=2, init_var=1.0,

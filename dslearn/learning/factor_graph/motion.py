@@ -233,7 +233,8 @@ def identify_motion(z: Tensor, n: Tensor, dt: float, sigma: float, m0: Tensor, p
             (:func:`~dslearn.learning.factor_graph.identification.identify`); ``prior_var`` centres a prior node on
             each round's expansion point (``inf``: none).
         converge_tol: the rounds stop once the estimate moves by less (max abs change).
-        max_halvings: the most halvings of a step that would let the criterion grow (then the rounds stop).
+        max_halvings: the most halvings of a step that would let the criterion grow (then the rounds stop); a step
+            halved below ``converge_tol`` stops them too (the estimate stays where it is).
     """
     dtype, device = z.dtype, z.device
     seen = (n > 0)[..., None].expand(*n.shape, 2).reshape(-1)
@@ -264,6 +265,8 @@ def identify_motion(z: Tensor, n: Tensor, dt: float, sigma: float, m0: Tensor, p
             break
         new = None
         for _h in range(int(max_halvings) + 1):
+            if float(step.abs().max()) < converge_tol:  # a step shorter than the tolerance: converged where it is
+                break
             hc = rows(beta + step)[0]
             if float(((y - hc).square() / s).sum()) <= j0:
                 new = beta + step
