@@ -112,8 +112,11 @@ def test_sweep_prints_one_status_line_per_job_and_no_launcher_lines(clean_sweep)
 
 
 @pytest.mark.serial  # signals and timing: run alone, before the parallel run (the README's test command)
-def test_ctrl_c_in_sweep_one_line_and_resume_command_finishes_it(clean_sweep, tmp_path):
+def test_ctrl_c_in_sweep_one_line_and_resume_command_finishes_it(tmp_path):
     d = tmp_path / "sweep dir"  # a space: the resume command must quote it
+    clean = tmp_path / "clean"  # the uninterrupted sweep, meanwhile, on the core the serial pass leaves free
+    baseline = subprocess.Popen(_cmd("-m", *GRID, f"hydra.sweep.dir={clean}"), cwd=ROOT, env=_env(),
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     # the child gets SIGINT's default disposition whatever the test runner inherited
     p = subprocess.Popen(_cmd("-m", *GRID, f"hydra.sweep.dir={d}"), cwd=ROOT, env=_env(), stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, start_new_session=True,
@@ -143,7 +146,8 @@ def test_ctrl_c_in_sweep_one_line_and_resume_command_finishes_it(clean_sweep, tm
     assert r.returncode == 0, r.stderr[-2000:]
     s = json.loads((d / "sweep.json").read_text())
     assert (s["jobs"], s["skipped"], s["done"], s["failed"]) == (4, done, 4 - done, 0)
-    pd.testing.assert_frame_equal(_table(d), _table(clean_sweep[0]))
+    assert baseline.wait(timeout=600) == 0
+    pd.testing.assert_frame_equal(_table(d), _table(clean))
 
 
 @pytest.mark.serial  # signals and timing: run alone, before the parallel run (the README's test command)
