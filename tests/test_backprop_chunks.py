@@ -15,26 +15,12 @@ from dslearn.fusion.weights import metropolis
 from dslearn.learning.backprop import BackpropLearning, BackpropParameters, GPParameters, fit, loss_terms
 from dslearn.models.gp import GPMotionModel
 from dslearn.types import StepContext
+from test_backprop import line, one_thread  # noqa: F401  (the line graph; one thread for tiny batched matrices)
 
 S, DT = 3, 0.5
 D64 = torch.float64
 CTX = StepContext(dt=DT)
 F = torch.tensor([[1.0, 0, DT, 0], [0, 1, 0, DT], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=D64)
-
-
-@pytest.fixture(autouse=True)
-def one_thread():  # tiny batched matrices: one thread is far faster than two on a shared machine
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-def line(s=S):
-    adj = torch.zeros(s, s, dtype=torch.bool)
-    for i in range(s - 1):
-        adj[i, i + 1] = adj[i + 1, i] = True
-    return adj
 
 
 class Net:
@@ -63,8 +49,8 @@ def prior(ep, fusion):  # every node: the first true position, loosely known (no
 
 
 def lin_params():
-    fusion = HybridConsensus(metropolis(line()), 2, 1.0)
-    return BackpropParameters(1, F, 0.1 * torch.eye(4, dtype=D64), 0.1 * torch.eye(2, dtype=D64), fusion, line(),
+    fusion = HybridConsensus(metropolis(line(S)), 2, 1.0)
+    return BackpropParameters(1, F, 0.1 * torch.eye(4, dtype=D64), 0.1 * torch.eye(2, dtype=D64), fusion, line(S),
                               learn=("q", "r", "weights", "omega", "model"))
 
 
@@ -74,8 +60,8 @@ def gp_params():
     for _ in range(10):
         x = torch.randn(S, 4, dtype=D64)
         m.add_data(x, x @ F.T + 0.1 * torch.randn(S, 4, dtype=D64), torch.ones(S, dtype=torch.bool))
-    fusion = HybridConsensus(metropolis(line()), 2, 1.0)
-    return BackpropParameters(1, None, torch.eye(4, dtype=D64), 0.1 * torch.eye(2, dtype=D64), fusion, line(),
+    fusion = HybridConsensus(metropolis(line(S)), 2, 1.0)
+    return BackpropParameters(1, None, torch.eye(4, dtype=D64), 0.1 * torch.eye(2, dtype=D64), fusion, line(S),
                               learn=("model", "r", "weights", "omega"), motion=GPParameters(m))
 
 
