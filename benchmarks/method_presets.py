@@ -30,10 +30,10 @@ MODELS = {"lin": ("lin", "constant velocity (LIN)"),
           "social_lstm": ("social_lstm", "the social LSTM, trained offline on the training episodes' tracks")}
 #: model preset word -> its conf/learner option (the distributed filter's natural learner for that model)
 LEARNERS = {"lin": "none", "sfm": "none", "gp": "online", "lstm": "offline", "social_lstm": "offline"}
-#: model preset word -> its conf/observation option: LIN takes the scenario's own sensor model (observation=sensor:
-#: the linear position sensor on Yu's and Liu's scenarios, the squared range on Jiang's, the terrain altitude on
-#: Braga's); the other models are sized for walkers seen by position sensors (observation=linear)
-OBSERVATIONS = {"lin": "sensor", "sfm": "linear", "gp": "linear", "lstm": "linear", "social_lstm": "linear"}
+#: model preset word -> its conf/observation option: every learned model and LIN take the scenario's own sensor
+#: model (observation=sensor: the linear position sensor on Yu's and Liu's scenarios, the squared range on Jiang's,
+#: the terrain altitude on Braga's); the social force model, the simulator's own, takes the walkers' position sensor
+OBSERVATIONS = {"lin": "sensor", "sfm": "linear", "gp": "sensor", "lstm": "sensor", "social_lstm": "sensor"}
 #: model preset word -> the model's settings in every preset of that model (the matrix's recipe, not the paper's:
 #: the LSTMs train with early stopping on held-out training episodes, one fit instead of the fixed schedule's two,
 #: and in float32 inside the float64 filter; measured in experiments/matrix/README.md, "Where the time goes")
@@ -92,7 +92,8 @@ def presets() -> dict[str, str]:
             "hybrid consensus (L = 4 rounds).", f"hybrid consensus (L = 4 rounds), {what} learned by "
             "backpropagation (learner=backprop).").replace(
             f"method=ekf_{m}_hybrid)", f"method=ekf_{m}_hybrid_backprop)").replace(
-            f"learner: {LEARNERS[m]}", "learner: backprop") + f"learner:\n  learn: {learn}\n{extra}"
+            f"learner: {LEARNERS[m]}", "learner: backprop").replace(
+            "observation: sensor", "observation: linear") + f"learner:\n  learn: {learn}\n{extra}"
     # the noises calibrated to the scenario (learner=calibrate: a scale of Q and of R by maximum likelihood of the
     # nodes' training innovations, after the model's own learner: the GP online, the LSTM offline)
     for m, what in (("lin", "LIN's Q"), ("sfm", "the social force's Q"), ("gp", "the GP's predictive variance"),

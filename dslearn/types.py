@@ -19,6 +19,9 @@ from dslearn.diagnostics import SESSION, JitterLog, record_jitter  # noqa: F401 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 AGENT_DIM = 4
+#: the scenario state layouts (:attr:`dslearn.episodes.ScenarioSpec.state`) that are the filters' own, ``[p, v]`` per
+#: agent or platform (``param2d``, Jiang's source, is a position alone)
+PV_LAYOUTS = ("pv2d", "platform")
 POS = slice(0, 2)
 VEL = slice(2, 4)
 

@@ -391,6 +391,24 @@ def _check_scenario(option, cfg, world):
         assert sc.area == (-500.0, 500.0, -500.0, 500.0) and bool((net.positions.abs() <= 500.0).all())
         assert cfg.scenario.trajectory._target_ == f"dslearn.sim.manoeuvres.generate_{option[4:]}"
         return
+    if option.endswith("_crowd"):  # a recorded scene with every pedestrian, unlabelled detections, 4 LiDARs around it
+        cfg = _compose("task=matrix", "method=ekf_lin_hybrid_gnn", f"scenario={option}")
+        assert cfg.scenario.name == option and cfg.scenario.dataset.files == \
+            _compose("task=matrix", "method=ekf_lin_hybrid", f"scenario={option[:-len('_crowd')]}").scenario.dataset.files
+        if not ethucy_data_available():
+            pytest.skip("the ETH/UCY data are absent")
+        sc = build_scenario(cfg)
+        spec, net = sc.spec, sc.network
+        cap = 60 if option == "eth_univ_crowd" else 12  # UNIV holds 25-83 pedestrians at a time
+        assert (spec.name, spec.measurement, spec.num_agents, spec.state, spec.dt, spec.steps, spec.source,
+                spec.labelled, spec.births) == (option, "position", cap, "pv2d", 0.4, 15, "recorded", False, True)
+        assert (net.num_nodes, int(net.is_sensor.sum()), net.sensing_range, net.meas_std) == (4, 4, 8.0, 0.2)
+        assert (sc.p_detect, sc.clutter_rate, sc.start_velocity_std) == (0.9, 0.5, 1.0)
+        # windows of 16 states every 8 steps, at most `cap` pedestrians, the last 20 % of each recording the test pool
+        pools = {"eth_zara1_crowd": (83, 20), "eth_zara2_crowd": (57, 14), "eth_eth_crowd": (142, 23),
+                 "eth_hotel_crowd": (120, 22), "eth_univ_crowd": (72, 20)}[option]
+        assert (sc.pool_size("train"), sc.pool_size("test")) == pools
+        return
     if option.startswith("eth_") or option == "corridor":  # a recorded data set: 2 pedestrians, 4 LiDARs around it
         cfg = _compose("task=matrix", "method=ekf_lin_hybrid", f"scenario={option}")
         files = {"eth_zara1": ["crowds_zara01.txt"], "eth_zara2": ["crowds_zara02.txt"], "eth_eth": ["biwi_eth.txt"],
@@ -524,8 +542,10 @@ def _check_method(option, cfg, world):
     recipe = {"schedule": "early_stopping", "patience": 5, "weights_dtype": "float32"} if "lstm" in model else {}
     assert cfg.model == {**_compose(f"model={model_option}").model, **recipe}
     assert not recipe or all(cfg.model[k] != _compose(f"model={model_option}").model[k] for k in recipe)
-    # LIN: the scenario's own sensor model (observation=sensor); the walkers' models: the linear position sensor
-    assert cfg.observation == (_compose("observation=sensor").observation if model == "lin" else _compose().observation)
+    # LIN and the learned models: the scenario's own sensor model (observation=sensor); the social force (the walkers'
+    # simulator's own model, fixed or fitted): the linear position sensor
+    own = model in ("lin", "gp", "lstm", "social_lstm")
+    assert cfg.observation == (_compose("observation=sensor").observation if own else _compose().observation)
 
 
 LEARNER_CLASSES = {"online": "OnlineLearning", "offline": "OfflineLearning", "none": "NoLearning",
@@ -609,7 +629,8 @@ EXPECTED_OPTIONS = {"data": {"paper", "small"}, "associator": set(ASSOCIATOR_CLA
                     "network": {"yu", "yu_blind"},
                     "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1", "eth_zara2",
                                  "eth_eth", "eth_hotel", "eth_univ",
-                                 "corridor", "jiang", "braga", "yu_crowd_clutter", "yu_crowd_births"}}
+                                 "corridor", "jiang", "braga", "yu_crowd_clutter", "yu_crowd_births"}
+                    | {f"eth_{s}_crowd" for s in ("eth", "hotel", "univ", "zara1", "zara2")}}
 
 
 def test_every_option_has_its_expected_values():

@@ -116,7 +116,7 @@ def test_every_n_a_cell_of_the_matrix_says_why_from_the_spec():
         else:  # the scenario's own sensor (observation=sensor); consensus needs a graph of nodes sharing targets;
             # one squared range per node cannot fix a position alone; Braga's aircraft each navigate themselves
             sensor = obs.endswith("scenario_sensor")
-            fits = sensor and model in ("lin", "cv_damped") and (
+            fits = sensor and (model != "sfm" or spec.dynamics == "social_force") and (
                 fusion == "centralized" if spec.measurement == "squared_range" else fusion in ("individual", "centralized"))
         assert (r["status"] != "does_not_fit") == fits, (c, r)
     # the cells the issue found hidden behind exception texts: the LSTM and the GP on jiang, sfm on liu_s1
@@ -141,6 +141,10 @@ def test_the_declarations_read_the_spec_alone():
     assert "which scenario s1 does not have" in declared_misfit(SocialForce.for_scenario, liu)
     assert declared_misfit(SocialForce.for_scenario, yu) is None
     assert declared_misfit(FittedSocialForce.for_scenario, liu) is None  # fitted to any tracks
+    # ... but its desired velocities come from each agent's own (labelled) measurements
+    crowd = ScenarioSpec("crowd", "position", 4, "pv2d", 0.25, 12, labelled=False)
+    why = declared_misfit(FittedSocialForce.for_scenario, crowd)
+    assert why.startswith("model=sfm_fit reads each agent's desired velocity") and "scenario crowd" in why
 
 
 def _faulty_lin(monkeypatch):

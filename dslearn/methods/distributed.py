@@ -29,7 +29,7 @@ from dslearn.methods.base import require
 from dslearn.models.base import MotionModel, ObservationModel
 from dslearn.network import SensorNetwork
 from dslearn.errors import ConfigError
-from dslearn.types import AGENT_DIM, safe_cholesky
+from dslearn.types import AGENT_DIM, PV_LAYOUTS, safe_cholesky
 
 _LOG = logging.getLogger(__name__)
 
@@ -131,7 +131,7 @@ class DistributedFilter:
         The motion model first learns as it would alone: an offline model (the LSTM) fits offline, a GP gathers
         its data sets online (Algorithm 1, ``learner``); then its parameters learn through the filter."""
         if self.model.learns_offline:  # one fit per model, training set and seed, shared (the offline-fit cache)
-            fit_offline_cached(self.model, train.states, ctx.dt, seed)
+            fit_offline_cached(self.model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
         if self.model.learnable:
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
         a = self.model.state_dim // AGENT_DIM
@@ -168,7 +168,7 @@ class DistributedFilter:
         learn from the first episodes, the scales are fitted on the held-out rest, ``learner.holdout``, which they
         then learn from too); the parts with the scales."""
         if self.model.learns_offline:  # the offline fit every preset of this model shares (the fit cache)
-            fit_offline_cached(self.model, train.states, ctx.dt, seed)
+            fit_offline_cached(self.model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
         n = len(train)
         held = min(int(round(self.learner.holdout * n)), n - 1) if learner.learnable and n > 1 else 0
         if learner.learnable:  # from the first episodes; the held-out ones after the fit (the same parts in the end)
@@ -299,7 +299,7 @@ class DistributedFilter:
             model, obs, fusion = self._backprop(scenario, network, train, ctx, seed, learner)
             learner = online(model, obs, fusion)
         if self.learner.fits_offline:  # supervised: learns from the training episodes' true tracks (once: the fit cache)
-            fit_offline_cached(model, train.states, ctx.dt, seed)
+            fit_offline_cached(model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
         self._fit_motion(model, train, ctx, seed)
         if self.learner.learns_online and learner.learnable:  # Algorithm 1 (offline: a learning observation model)
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())  # no evaluation at checkpoints
@@ -335,12 +335,24 @@ class DistributedFilter:
         learner = AssociatingLearner(network, model, obs, fusion, ctx, init=init, predict_step=self.predict,
                                      learn_gate_std=self.learn_gate_std, associate=hook)
         if self.learner.fits_offline:
-            fit_offline_cached(model, train.states, ctx.dt, seed)
+            fit_offline_cached(model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
         self._fit_motion(model, train, ctx, seed)
         if self.learner.learns_online and learner.learnable:
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
         res = learner.estimate(test)
         return beliefs_to_estimates(res.mean, res.info, network, a)
+
+
+def filter_tracks(scenario: Scenario, states: torch.Tensor, dt: float) -> torch.Tensor:
+    """True tracks ``(B, K+1, Dx)`` in the filter's state layout, ``[p, v]`` per agent, what an offline fit learns
+    from: the scenario's states where they already are (``pv2d``, ``platform``), else its positions
+    (:meth:`positions`) with velocities by finite differences (:func:`torch.gradient`: central inside, one-sided at
+    the ends), as for the recorded pedestrians (Jiang's source is a position alone)."""
+    if scenario.spec.state in PV_LAYOUTS:
+        return states
+    pos = scenario.positions(states)  # (B, K+1, A, 2)
+    vel = torch.gradient(pos, spacing=float(dt), dim=1, edge_order=1)[0]
+    return torch.cat([pos, vel], -1).flatten(-2)
 
 
 @dataclass

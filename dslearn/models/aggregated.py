@@ -49,7 +49,7 @@ from torch import Tensor
 
 from dslearn.fusion.aggregation import aggregate
 from dslearn.errors import ConfigError, check_choice
-from dslearn.types import StepContext
+from dslearn.types import AGENT_DIM, StepContext
 from dslearn.models.base import MotionModel
 from dslearn.models.gp import GPMotionModel
 
@@ -197,7 +197,7 @@ def aggregated_for_scenario(*, scenario, num_nodes: int, dtype, device, aggregat
     if str(gp_keys.get("noise", "latent")) == "adaptive":
         raise ConfigError("model.noise='adaptive' is not available for an aggregated GP (model.aggregation="
                           f"{aggregation}); choose model.noise=latent or model.noise=predictive")
-    base = GPMotionModel(scenario.state_dim, num_nodes, dtype=dtype, device=device, **gp_keys)
+    base = GPMotionModel(AGENT_DIM * scenario.num_agents, num_nodes, dtype=dtype, device=device, **gp_keys)
     return AggregatedGPMotion(base, str(aggregation), bool(normalise_beta), str(aggregation_jacobian))
 
 

@@ -11,7 +11,7 @@ from dslearn.errors import ConfigError, check_choice
 from dslearn.models.base import MotionModel
 from dslearn.models.gp_backends import GPBackend, OnlineGP, make_online_gp
 from dslearn.models.gp_backends.exact import FACTORS
-from dslearn.types import DTYPES, StepContext
+from dslearn.types import AGENT_DIM, DTYPES, StepContext
 
 NOISE_MODES = ("latent", "predictive", "adaptive")
 INPUTS = ("mean", "belief")
@@ -67,8 +67,10 @@ class GPMotionModel(MotionModel):
     @classmethod
     def for_scenario(cls, *, scenario, num_nodes: int, dtype, device, **keys) -> "GPMotionModel":
         """The config factory (``conf/model/gp*.yaml``): the GP keys of the config (the constructor's
-        keyword arguments), sized by the scenario's state and the network's nodes."""
-        return cls(scenario.state_dim, num_nodes, dtype=dtype, device=device, **keys)
+        keyword arguments), sized by the filter's state (``[p, v]`` per agent of the scenario, whatever the
+        scenario's own layout: Jiang's source is a position, its filters track a position and a velocity) and the
+        network's nodes."""
+        return cls(AGENT_DIM * scenario.num_agents, num_nodes, dtype=dtype, device=device, **keys)
 
     def __init__(
         self,

@@ -20,7 +20,7 @@ def gp_cv_for_scenario(*, scenario, num_nodes: int, dtype, device, mean=None, **
         raise ConfigError(f"model.mean={mean!r}: the gp_cv model's prior mean is the constant-velocity step with the "
                           "scenario's dt; leave model.mean null (or choose model=gp_increment for another mean)")
     return GPMotionModel.for_scenario(scenario=scenario, num_nodes=num_nodes, dtype=dtype, device=device,
-                                      mean=ConstantVelocityMean(float(scenario.dt)), **keys)
+                                      mean=ConstantVelocityMean(float(scenario.ctx().dt)), **keys)
 
 
 #: a GP that learns online (the keys it does not read: dslearn.schemas.base.hook_of)

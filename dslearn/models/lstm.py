@@ -192,7 +192,7 @@ class SocialLSTM(MotionModel):
             dtype = DTYPES[str(weights_dtype)]
         try:
             model = cls(int(scenario.num_agents), obs_len, pred_len, embed, hidden, pooling, grid, neighbourhood,
-                        float(scenario.dt), dtype, device, noise_std, seed=0)
+                        float(scenario.ctx().dt), dtype, device, noise_std, seed=0)
         except ConfigError as e:  # the constructor names lstm.<key>; here they are model keys
             raise ConfigError(str(e).replace("lstm.", "model.")) from None
         model.configure_offline(schedule=schedule, epochs=epochs, batch_size=batch_size, lr=lr, patience=patience,
