@@ -16,7 +16,6 @@ import math
 import torch
 from torch import Tensor
 
-from dslearn.models.base import MotionModel
 from dslearn.models.social_force import SocialForce
 from dslearn.types import POS, VEL, StepContext, agents
 
@@ -159,8 +158,15 @@ class FittedSocialForce(SocialForce):
     desired velocities 0."""
 
     learns_offline = True
-    #: fitted to any scenario's tracks: it needs nothing of the simulation (unlike model=sfm)
-    spec_misfit = staticmethod(MotionModel.spec_misfit)
+    @staticmethod
+    def spec_misfit(spec) -> str | None:
+        """Fitted to any scenario's tracks, it needs nothing of the simulation (unlike model=sfm); but the matrix's
+        protocol reads each agent's desired velocity from that agent's own measurements (:meth:`begin_measured`),
+        which unlabelled detections do not tell apart."""
+        if getattr(spec, "labelled", True):
+            return None
+        return (f"model=sfm_fit reads each agent's desired velocity from the agent's own measurements at its first "
+                f"steps; scenario {spec.name} reports unlabelled detections, which do not say whose they are")
 
     def gradient_misfit(self) -> str | None:
         """A gradient learner leaves it alone: its desired velocities are set per episode and it fits offline."""
