@@ -231,6 +231,66 @@ def extract_episodes(
     return EpisodeSet(st, meta, dt, m)
 
 
+def extract_crowd_windows(scene: Any, max_agents: int, steps: int, dt: float | None = None,
+                          stride: int | None = None) -> EpisodeSet:
+    r"""Windows of ``steps`` steps with **every** pedestrian of the recording in them, each present over the part
+    of the window its track covers (pedestrians enter and leave).
+
+    Candidate windows start every ``stride`` study steps from each file's first time (as
+    :func:`extract_episodes`). A pedestrian is in a window if its track covers at least two of the window's
+    times (a velocity needs two); over the times its track covers it has its interpolated position and its
+    finite-difference velocity (:func:`finite_difference_velocity` over that stretch), elsewhere ``NaN`` (absent).
+    A window with more than ``max_agents`` pedestrians is dropped (counted in ``attrs["too_crowded"]``), one with
+    none too; the pedestrians of a window fill its first slots in the order of their ids, the rest stay absent.
+
+    Returns:
+        :class:`EpisodeSet` of ``(B, K+1, 4 max_agents)`` states (``NaN`` where absent); ``meta`` as
+        :func:`extract_episodes`' (``dist0`` is ``NaN``) plus ``agents``, the pedestrians in the window.
+    """
+    check_integer("scenario.episodes.max_agents", max_agents, 1)
+    check_integer("scenario.episodes.steps", steps, 1)
+    dt = float(scene.dt if dt is None else dt)
+    check_positive("scenario.episodes.dt", dt)
+    stride = steps if stride is None else stride
+    check_integer("scenario.episodes.stride", stride, 1)
+    span = steps * dt
+    states, rows, crowded = [], [], 0
+    for file, fdf in scene.df.groupby("file", sort=True):
+        tracks = {}
+        for ped, g in fdf.groupby("ped", sort=True):
+            g = g.sort_values("t")
+            tracks[ped] = (g["t"].to_numpy(float), g[["x", "y"]].to_numpy(float))
+        tmin, tmax = float(fdf["t"].min()), float(fdf["t"].max())
+        n_start = int(math.floor((tmax - span - tmin) / (stride * dt) + _EPS)) + 1
+        for k in range(max(n_start, 0)):
+            t0 = tmin + k * stride * dt
+            times = t0 + dt * np.arange(steps + 1)
+            inside = []
+            for ped, (t, xy) in tracks.items():
+                on = (times >= t[0] - _EPS) & (times <= t[-1] + _EPS)
+                if on.sum() >= 2:
+                    inside.append((ped, on, t, xy))
+            if not inside:
+                continue
+            if len(inside) > max_agents:
+                crowded += 1
+                continue
+            st = np.full((steps + 1, max_agents, 4), np.nan)
+            for a, (ped, on, t, xy) in enumerate(inside):
+                pos = resample_track(t, xy, times[on])
+                st[on, a, :2] = pos
+                st[on, a, 2:] = finite_difference_velocity(pos, dt)
+            states.append(st.reshape(steps + 1, 4 * max_agents))
+            rows.append(dict(scene=str(scene.name), file=str(file),
+                             peds=",".join(str(int(p)) if float(p).is_integer() else str(p) for p, *_ in inside),
+                             t0=float(t0), t1=float(t0 + span), dist0=math.nan, file_tmin=tmin, file_tmax=tmax,
+                             agents=len(inside)))
+    cols = ["scene", "file", "peds", "t0", "t1", "dist0", "file_tmin", "file_tmax", "agents"]
+    st = (torch.as_tensor(np.stack(states), dtype=torch.float64) if states
+          else torch.zeros(0, steps + 1, 4 * max_agents, dtype=torch.float64))
+    return EpisodeSet(st, pd.DataFrame(rows, columns=cols), dt, max_agents, {"too_crowded": crowded})
+
+
 def split_episodes(
     eps: EpisodeSet,
     mode: str = "time",

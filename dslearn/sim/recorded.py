@@ -149,8 +149,7 @@ class RecordedScenario:
         if not dataset.get("files"):
             raise ConfigError("scenario.dataset.files must name at least one file")
         check_choice("scenario.convention", convention, CONVENTIONS)
-        self.cut = _settings(EpisodeCut, episodes, "scenario.episodes")
-        check_cut(self.cut)
+        self.cut = self._cut(episodes)
         arena = _settings(ArenaCut, network, "scenario.network")
         check_arena(arena)
         check_integer("scenario.seed", seed, 0)
@@ -167,20 +166,35 @@ class RecordedScenario:
             raise ConfigError(f"scenario.dataset.files: {e}") from None
         self.scene = dataclasses.replace(scene, name=self.name)
         c = self.cut
-        self.episodes: EpisodeSet = extract_episodes(self.scene, c.agents, c.steps, c.dt, c.max_dist, c.stride,
-                                                     c.criterion, c.min_speed)
+        self.episodes: EpisodeSet = self._extract()
         train, test = split_episodes(self.episodes, c.split, c.test_fraction, None, self.seed)
         if len(test) == 0:
             raise ConfigError(
-                f"scenario {self.name}: the data set gives {len(self.episodes)} episodes of {c.agents} pedestrians "
-                f"and none in the test pool; lower scenario.episodes.max_dist/min_speed/stride/steps or raise "
-                f"scenario.episodes.test_fraction")
+                f"scenario {self.name}: the data set gives {len(self.episodes)} episodes of {self._what} "
+                f"and none in the test pool; {self._lower} or raise scenario.episodes.test_fraction")
         order = np.random.default_rng(stream_seed(self.seed, "recorded_test_order", self.name)).permutation(len(test))
         self.pools = {"train": np.asarray(train, dtype=np.int64), "test": np.asarray(test, dtype=np.int64)[order]}
         self.area = scene_extent(torch.tensor(self.scene.df[["x", "y"]].to_numpy()))
         self.network: SensorNetwork = arena_network(self.area, arena.num_sensors, arena.k_nearest,
                                                     arena.sensing_range, arena.meas_std, arena.margin,
                                                     key="scenario.network")
+
+    # how the recorded tracks become episodes (a subclass cuts them otherwise: dslearn.sim.crowd) ------------
+    @staticmethod
+    def _cut(episodes: Mapping | None) -> EpisodeCut:
+        cut = _settings(EpisodeCut, episodes, "scenario.episodes")
+        check_cut(cut)
+        return cut
+
+    def _extract(self) -> EpisodeSet:
+        c = self.cut
+        return extract_episodes(self.scene, c.agents, c.steps, c.dt, c.max_dist, c.stride, c.criterion, c.min_speed)
+
+    @property
+    def _what(self) -> str:  # what an episode holds, for the messages
+        return f"{self.cut.agents} pedestrians"
+
+    _lower = "lower scenario.episodes.max_dist/min_speed/stride/steps"
 
     # what model factories read of a scenario -------------------------------------------------------
     @property
@@ -227,7 +241,7 @@ class RecordedScenario:
         if num > len(pool):
             raise ConfigError(
                 f"scenario {self.name}: {num} {split} episodes asked for, its {split} pool holds {len(pool)} "
-                f"(episodes of {self.cut.agents} pedestrians over {self.cut.steps} steps, split "
+                f"(episodes of {self._what} over {self.cut.steps} steps, split "
                 f"{self.cut.split} with test_fraction {self.cut.test_fraction:g}); ask for at most {len(pool)} "
                 f"(task.{split}_episodes) or change scenario.episodes")
         return pool[:num]
