@@ -14,6 +14,7 @@ from torch import Tensor
 
 from dslearn.models.gp import GPMotionModel
 from dslearn.models.gp_backends import OnlineGP
+from dslearn.models.kernels import se, sq_dist_inner
 
 
 def constant_velocity(obs: Tensor, pred_len: int) -> Tensor:
@@ -64,9 +65,8 @@ def gp_mean(gp: OnlineGP, x: Tensor) -> Tensor:
     of a forecasting fold. All stored points must be valid (as :func:`load_gp_data` makes them).
     """
     ls, os_ = gp.lengthscale[0].to(x), gp.outputscale[0].to(x)
-    a, b = x / ls, gp.data()[0][0].to(x) / ls
-    d2 = ((a * a).sum(-1, keepdim=True) + (b * b).sum(-1) - 2.0 * a @ b.T).clamp_min(0.0)
-    return gp.prior_mean(x.unsqueeze(0))[0] + (os_ * torch.exp(-0.5 * d2)) @ gp.alpha[0].to(x)
+    d2 = sq_dist_inner(x, gp.data()[0][0].to(x), ls)
+    return gp.prior_mean(x.unsqueeze(0))[0] + se(d2, os_) @ gp.alpha[0].to(x)
 
 
 @torch.no_grad()

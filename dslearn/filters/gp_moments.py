@@ -38,6 +38,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from dslearn.models.kernels import se
+
 
 def _sq_lengthscales(lengthscales: Tensor) -> Tensor:
     return lengthscales * lengthscales
@@ -166,7 +168,7 @@ def kernel(a: Tensor, b: Tensor, lengthscales: Tensor, signal_var: Tensor) -> Te
     a_ = a.unsqueeze(-3) / lengthscales.unsqueeze(-2)         # (*B, E, na, D)
     b_ = b.unsqueeze(-3) / lengthscales.unsqueeze(-2)         # (*, E, nb, D)
     d2 = (a_.unsqueeze(-2) - b_.unsqueeze(-3)).pow(2).sum(-1)  # (*B, E, na, nb)
-    return signal_var.unsqueeze(-1).unsqueeze(-1) * torch.exp(-0.5 * d2)
+    return se(d2, signal_var.unsqueeze(-1).unsqueeze(-1))
 
 
 def fit_gps(X: Tensor, Y: Tensor, iterations: int = 200, lr: float = 0.1, min_noise: float = 1e-8) -> GPPosterior:

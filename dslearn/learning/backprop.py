@@ -62,6 +62,7 @@ from dslearn.filters.information import predict as ekf_predict
 from dslearn.fusion.strategies import Fusion, make_fusion
 from dslearn.learning import Learner
 from dslearn.models.base import MotionModel, ObservationModel
+from dslearn.models.kernels import se, sq_dist_inner
 from dslearn.types import AGENT_DIM, POS, StepContext, agents, safe_cholesky
 
 #: what ``learner.learn`` may list
@@ -213,10 +214,7 @@ class DifferentiableGP(MotionModel):
     def _kernel(self, a: Tensor, b: Tensor) -> Tensor:
         """``(S, Na, d), (S, Nb, d) -> (S, Na, Nb)``: :math:`\\sigma_f^2 \\exp(-\\|a-b\\|^2 / 2l^2)`, by inner
         products (differentiable where ``a = b``, unlike the distance)."""
-        ls = self.ls.reshape(-1, 1, 1)
-        a, b = a / ls, b / ls
-        d2 = (a * a).sum(-1).unsqueeze(-1) + (b * b).sum(-1).unsqueeze(-2) - 2 * a @ b.transpose(-1, -2)
-        return self.os.reshape(-1, 1, 1) * torch.exp(-0.5 * d2.clamp_min(0.0))
+        return se(sq_dist_inner(a, b, self.ls.reshape(-1, 1, 1)), self.os.reshape(-1, 1, 1))
 
     def predict(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Mean ``(S, N, Dx)``, latent variance ``(S, N)``, Jacobian ``(S, N, Dx, Dx)`` at ``x (S, N, Dx)``."""

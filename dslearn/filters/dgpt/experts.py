@@ -28,6 +28,8 @@ import torch
 from linear_operator import to_linear_operator
 from torch import Tensor
 
+from dslearn.models.kernels import se_kernel
+
 
 def _exp_positive(lower: float = 0.0):
     """Constraint ``lower + exp(raw)``: optimisation in log space (scales differ by 1e4)."""
@@ -216,7 +218,7 @@ def predict_latent_slice(hypers: Hypers, index: int, x: Tensor, z: Tensor, mask:
     ls = ls.unsqueeze(-2)                      # (B, C, 1, 1, d)
 
     def k(a, b):
-        return os_[..., None, None] * torch.exp(-0.5 * torch.cdist(a / ls, b / ls).pow(2))
+        return se_kernel(a, b, ls, os_[..., None, None])
 
     m = mask.to(x.dtype)
     kk = k(x, x) * (m.unsqueeze(-1) * m.unsqueeze(-2)) + torch.diag_embed(1.0 - m)

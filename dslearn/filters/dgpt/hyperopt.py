@@ -37,6 +37,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from dslearn.models.kernels import se
+
 LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -120,7 +122,7 @@ def _kernel_parts(theta: Tensor, x: Tensor, mask: Tensor):
     ls = ls[..., None, None, None, :]                     # (*pb, 1, 1, 1, d)
     m = mask.to(x.dtype)
     dk = ((x[..., :, None, :] - x[..., None, :, :]) / ls) ** 2   # (*pb, M, W, W, d): D_k / l_k^2
-    kf = os_ * torch.exp(-0.5 * dk.sum(-1)) * (m[..., :, None] * m[..., None, :])
+    kf = se(dk.sum(-1), os_) * (m[..., :, None] * m[..., None, :])
     diag = m * nz[..., None, None] + (1.0 - m)            # padded slots: decoupled unit variance
     k = kf + torch.diag_embed(diag)
     return k, kf, dk, m, os_[..., 0, 0, 0], nz
@@ -196,7 +198,7 @@ class Posterior:
 
     def __call__(self, xs: Tensor):
         d2 = (((self.x[..., :, None, :] - xs[..., None, :, :]) / self.ls) ** 2).sum(-1)
-        ks = self.os[..., None] * torch.exp(-0.5 * d2) * self.m[..., None]   # (*pb, M, W, Q)
+        ks = se(d2, self.os[..., None]) * self.m[..., None]   # (*pb, M, W, Q)
         mean = (ks * self.alpha).sum(-2)
         v = torch.linalg.solve_triangular(self.chol, ks, upper=False)
         prior = self.os.expand_as(mean)

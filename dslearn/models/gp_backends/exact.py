@@ -32,6 +32,7 @@ from dslearn.diagnostics import record_jitter
 from dslearn.errors import ConfigError, check_choice, check_positive
 from dslearn.models.gp_backends import inverse_factor
 from dslearn.models.gp_backends.means import NAMED, PriorMeanModule
+from dslearn.models.kernels import se_kernel
 from dslearn.types import StepContext, safe_cholesky
 
 MEANS = ("zero", "constant", "identity")
@@ -242,8 +243,7 @@ class OnlineGP(PriorMean, nn.Module):
         """
         with torch.no_grad():
             ls = self.covar_module.base_kernel.lengthscale.to(a)  # (S, 1, 1)
-            d2 = torch.cdist(a / ls, b / ls).pow(2)  # matmul-based for large inputs: no (Na, Nb, d) tensor
-            return self.covar_module.outputscale.to(a).reshape(-1, 1, 1) * torch.exp(-0.5 * d2)
+            return se_kernel(a, b, ls, self.covar_module.outputscale.to(a).reshape(-1, 1, 1))
 
     def _snapshot_hypers(self) -> None:
         """The hyperparameters the factor was built with, as plain tensors: ``(S, 1, 1)`` lengthscales,

@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from dslearn.errors import ConfigError, check_choice, check_positive
 from dslearn.models.gp_backends.exact import MEANS, OnlineGP, PriorMean
+from dslearn.models.kernels import se_kernel
 
 
 def chol_update(L: Tensor, v: Tensor) -> Tensor:
@@ -379,8 +380,7 @@ class SGPR(_SparseBase):
         self.n = 0
 
     def kernel(self, a: Tensor, b: Tensor) -> Tensor:
-        ls = self._ls.reshape(-1, 1, 1)
-        return self._sf2.reshape(-1, 1, 1) * torch.exp(-0.5 * torch.cdist(a / ls, b / ls).pow(2))
+        return se_kernel(a, b, self._ls.reshape(-1, 1, 1), self._sf2.reshape(-1, 1, 1))
 
     @property
     def c(self) -> Tensor:
