@@ -1,6 +1,7 @@
 """Errors raised for bad configuration or input, before any work starts."""
 
-from collections.abc import Mapping
+import math
+from collections.abc import Mapping, Sequence
 from numbers import Integral
 
 
@@ -17,6 +18,37 @@ def check_choice(field: str, value, allowed) -> None:
     allowed = list(allowed)
     if value not in allowed:
         raise ConfigError(f"{field}={value!r} is not allowed; choose one of {allowed}")
+
+
+def _fmt(v) -> str:
+    return repr(v) if not isinstance(v, float) or math.isfinite(v) else str(v)
+
+
+def check_rules(field: str, value, rules: Mapping) -> None:
+    """One value against declared rules (a schema field's or a data set key's): ``min_len`` / ``max_len`` of a list,
+    ``choices``, the bounds ``ge`` / ``gt`` / ``le`` / ``lt`` (a bounded number must be finite); ``None`` passes.
+    :class:`ConfigError` naming ``field``."""
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        n = len(value)
+        if "min_len" in rules and n < rules["min_len"]:
+            raise ConfigError(f"{field} has {n} entries; it needs at least {rules['min_len']}")
+        if "max_len" in rules and n > rules["max_len"]:
+            raise ConfigError(f"{field} has {n} entries; it allows at most {rules['max_len']}")
+        return
+    if value is None:
+        return
+    if rules.get("choices") is not None:
+        check_choice(field, value, rules["choices"])
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return
+    bounds = {k: rules.get(k) for k in ("ge", "gt", "le", "lt") if rules.get(k) is not None}
+    if isinstance(value, float) and not math.isfinite(value) and bounds:
+        raise ConfigError(f"{field}={value} must be a finite number")
+    words = {"ge": ">=", "gt": ">", "le": "<=", "lt": "<"}
+    broken = {"ge": lambda b: value < b, "gt": lambda b: value <= b, "le": lambda b: value > b,
+              "lt": lambda b: value >= b}
+    if any(broken[k](b) for k, b in bounds.items()):
+        raise ConfigError(f"{field}={value!r} must be " + " and ".join(f"{words[k]} {_fmt(b)}" for k, b in bounds.items()))
 
 
 def _number(field: str, value) -> float:

@@ -17,8 +17,7 @@ packaged ones and the user's) is the validation layer's business (:mod:`dslearn.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from dslearn.data.ethucy import Scene, default_root, read_trajectories
-from dslearn.errors import ConfigError, check_choice
+from dslearn.errors import ConfigError, check_choice, check_rules
 
 CONVENTIONS = ("benchmark", "physical")
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
@@ -76,30 +75,6 @@ class DatasetSpec:
         return {} if self.val_first_frame is None else dict(zip(self.files, self.val_first_frame))
 
 
-def _is_list(v) -> bool:
-    return isinstance(v, Sequence) and not isinstance(v, (str, bytes))
-
-
-def _check_value(name: str, v, rules: dict) -> None:
-    """One value against its rules (``min_len`` of a list, ``choices``, the bounds ``ge`` / ``gt``)."""
-    if _is_list(v):
-        if "min_len" in rules and len(v) < rules["min_len"]:
-            raise ConfigError(f"{name} has {len(v)} entries; it needs at least {rules['min_len']}")
-        return
-    if v is None:
-        return
-    if rules.get("choices") is not None:
-        check_choice(name, v, rules["choices"])
-    if not isinstance(v, (int, float)) or isinstance(v, bool):
-        return
-    if isinstance(v, float) and not math.isfinite(v) and ("ge" in rules or "gt" in rules):
-        raise ConfigError(f"{name}={v} must be a finite number")
-    if "ge" in rules and v < rules["ge"]:
-        raise ConfigError(f"{name}={v!r} must be >= {rules['ge']!r}")
-    if "gt" in rules and v <= rules["gt"]:
-        raise ConfigError(f"{name}={v!r} must be > {rules['gt']!r}")
-
-
 def check_dataset(name: str, values: Mapping, prefix: str) -> None:
     """The values of one data set (a mapping of :data:`DATASET_KEYS`): no unknown key, the rules of
     :data:`DATASET_RULES`, one ``val_first_frame`` per file. ConfigError naming ``prefix.<key>``."""
@@ -109,7 +84,7 @@ def check_dataset(name: str, values: Mapping, prefix: str) -> None:
         raise ConfigError(f"{where}: unknown key; {prefix or 'the config'} takes {list(DATASET_KEYS)}")
     for key, rules in DATASET_RULES.items():
         if key in values:
-            _check_value(f"{prefix}.{key}" if prefix else key, values[key], rules)
+            check_rules(f"{prefix}.{key}" if prefix else key, values[key], rules)
     vf = values.get("val_first_frame")
     if vf is not None and len(vf) != len(values["files"]):
         raise ConfigError(f"{prefix}.val_first_frame has {len(vf)} entries for {len(values['files'])} files; give one per file or null")

@@ -30,39 +30,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 from typing import Any, Callable
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from dslearn.errors import ConfigError
+from dslearn.errors import ConfigError, check_rules
 from dslearn.settings import RULES, ranged  # noqa: F401  (the rules this layer applies)
-
-def _fmt(v) -> str:
-    return repr(v) if not isinstance(v, float) or math.isfinite(v) else str(v)
-
-
-def _check_value(name: str, v, rules: dict) -> None:
-    if v is None:
-        return
-    choices = rules.get("choices")
-    if choices is not None and v not in choices:
-        raise ConfigError(f"{name}={v!r} is not allowed; choose one of {list(choices)}")
-    numeric = isinstance(v, (int, float)) and not isinstance(v, bool)
-    if not numeric:
-        return
-    if isinstance(v, float) and not math.isfinite(v) and any(k in rules for k in ("ge", "gt", "le", "lt")):
-        raise ConfigError(f"{name}={v} must be a finite number")
-    lo_ge, lo_gt, hi_le, hi_lt = (rules.get(k) for k in ("ge", "gt", "le", "lt"))
-    bounds = " and ".join(
-        s for s in (
-            f">= {_fmt(lo_ge)}" if lo_ge is not None else "", f"> {_fmt(lo_gt)}" if lo_gt is not None else "",
-            f"<= {_fmt(hi_le)}" if hi_le is not None else "", f"< {_fmt(hi_lt)}" if hi_lt is not None else "",
-        ) if s
-    )
-    if ((lo_ge is not None and v < lo_ge) or (lo_gt is not None and v <= lo_gt)
-            or (hi_le is not None and v > hi_le) or (hi_lt is not None and v >= hi_lt)):
-        raise ConfigError(f"{name}={v!r} must be {bounds}")
 
 
 def check_ranges(node: Any, schema: type, prefix: str) -> None:
@@ -94,11 +67,11 @@ def check_ranges(node: Any, schema: type, prefix: str) -> None:
                 raise ConfigError(f"{name} has {n} entries; it allows at most {rules['max_len']}")
             if rules.get("each"):
                 for i, x in enumerate(v):
-                    _check_value(f"{name}[{i}]", x, rules)
+                    check_rules(f"{name}[{i}]", x, rules)
             continue
         if rules.get("each"):
             continue
-        _check_value(name, v, rules)
+        check_rules(name, v, rules)
 
 
 #: the root config groups a task may read besides its own ``task`` node (``conf/config.yaml``'s defaults)
