@@ -147,6 +147,18 @@ def _groups(pos: np.ndarray, m: int, max_dist: float, criterion: str) -> list[tu
     return sorted(out)
 
 
+def _file_windows(fdf: pd.DataFrame, span: float, stride: int, dt: float):
+    """One recording file's tracks ``{ped: (t (n,), xy (n, 2))}`` in time order, its time range ``tmin, tmax`` and the
+    number of windows of ``span`` seconds starting every ``stride`` steps of ``dt`` from ``tmin``."""
+    tracks = {}
+    for ped, g in fdf.groupby("ped", sort=True):
+        g = g.sort_values("t")
+        tracks[ped] = (g["t"].to_numpy(float), g[["x", "y"]].to_numpy(float))
+    tmin, tmax = float(fdf["t"].min()), float(fdf["t"].max())
+    n_start = int(math.floor((tmax - span - tmin) / (stride * dt) + _EPS)) + 1
+    return tracks, tmin, tmax, n_start
+
+
 def extract_episodes(
     scene: Any,
     num_agents: int = 2,
@@ -189,15 +201,10 @@ def extract_episodes(
     states, rows = [], []
     df = scene.df
     for file, fdf in df.groupby("file", sort=True):
-        tracks = {}
-        for ped, g in fdf.groupby("ped", sort=True):
-            g = g.sort_values("t")
-            tracks[ped] = (g["t"].to_numpy(float), g[["x", "y"]].to_numpy(float))
+        tracks, tmin, tmax, n_start = _file_windows(fdf, span, stride, dt)
         ids = np.array(list(tracks))
         first = np.array([tracks[p][0][0] for p in ids])
         last = np.array([tracks[p][0][-1] for p in ids])
-        tmin, tmax = float(fdf["t"].min()), float(fdf["t"].max())
-        n_start = int(math.floor((tmax - span - tmin) / (stride * dt) + _EPS)) + 1
         for k in range(max(n_start, 0)):
             t0 = tmin + k * stride * dt
             present = np.nonzero((first <= t0 + _EPS) & (last >= t0 + span - _EPS))[0]
@@ -256,12 +263,7 @@ def extract_crowd_windows(scene: Any, max_agents: int, steps: int, dt: float | N
     span = steps * dt
     states, rows, crowded = [], [], 0
     for file, fdf in scene.df.groupby("file", sort=True):
-        tracks = {}
-        for ped, g in fdf.groupby("ped", sort=True):
-            g = g.sort_values("t")
-            tracks[ped] = (g["t"].to_numpy(float), g[["x", "y"]].to_numpy(float))
-        tmin, tmax = float(fdf["t"].min()), float(fdf["t"].max())
-        n_start = int(math.floor((tmax - span - tmin) / (stride * dt) + _EPS)) + 1
+        tracks, tmin, tmax, n_start = _file_windows(fdf, span, stride, dt)
         for k in range(max(n_start, 0)):
             t0 = tmin + k * stride * dt
             times = t0 + dt * np.arange(steps + 1)

@@ -60,11 +60,7 @@ def check_ranges(node: Any, schema: type, prefix: str) -> None:
             check_ranges(v, sub, name)
             continue
         if isinstance(v, (ListConfig, list, tuple)):
-            n = len(v)
-            if "min_len" in rules and n < rules["min_len"]:
-                raise ConfigError(f"{name} has {n} entries; it needs at least {rules['min_len']}")
-            if "max_len" in rules and n > rules["max_len"]:
-                raise ConfigError(f"{name} has {n} entries; it allows at most {rules['max_len']}")
+            check_rules(name, v, rules)  # its length
             if rules.get("each"):
                 for i, x in enumerate(v):
                     check_rules(f"{name}[{i}]", x, rules)

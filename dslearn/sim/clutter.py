@@ -38,6 +38,11 @@ from dslearn.streams import Streams, rand
 CLUTTER_TAIL = 1e-12
 
 
+def clutter_density(clutter_rate: float, network: SensorNetwork) -> float:
+    """The clutter's spatial density per unit area of a sensing disc: ``clutter_rate / (pi r^2)``."""
+    return clutter_rate / (math.pi * network.sensing_range**2)
+
+
 def check_detection(p_detect, clutter_rate) -> tuple[float, float]:
     """``p_detect`` in (0, 1] and ``clutter_rate`` >= 0 (finite), else :class:`ConfigError` naming the field."""
     p = _number("scenario.p_detect", p_detect)
@@ -168,8 +173,8 @@ class ClutterScenario(SocialForceScenario):
         return mean, torch.diag_embed(var.expand(self.num_agents, 4)).clone()
 
     def clutter_density(self, network: SensorNetwork) -> float:
-        """The clutter's spatial density per unit area of a sensing disc: ``clutter_rate / (pi r^2)``."""
-        return self.clutter_rate / (math.pi * network.sensing_range**2)
+        """The clutter's spatial density per unit area of a sensing disc (:func:`clutter_density`)."""
+        return clutter_density(self.clutter_rate, network)
 
     def sample(self, num: int, network: SensorNetwork, generator: torch.Generator | Streams) -> Episodes:
         ep = super().sample(num, network, generator)

@@ -20,7 +20,6 @@ its tracks (``associator.tracks``), starting them from detections with velocity 
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Mapping
 
 import torch
@@ -28,10 +27,10 @@ from torch import Tensor
 
 from dslearn.data.episodes import EpisodeSet, extract_crowd_windows
 from dslearn.episodes import Episodes, ScenarioSpec
-from dslearn.errors import ConfigError, check_choice, check_integer, check_positive
+from dslearn.errors import check_integer, check_positive
 from dslearn.network import SensorNetwork
-from dslearn.sim.clutter import DetectionSpec, check_detection, detections
-from dslearn.sim.recorded import SPLIT_MODES, RecordedScenario, _settings
+from dslearn.sim.clutter import DetectionSpec, check_detection, clutter_density, detections
+from dslearn.sim.recorded import RecordedScenario, _settings, check_window
 from dslearn.sim.scenario import measure
 from dslearn.streams import Streams
 
@@ -50,13 +49,7 @@ class CrowdCut:
 
 def check_crowd_cut(c: CrowdCut, prefix: str = "scenario.episodes") -> None:
     check_integer(f"{prefix}.max_agents", c.max_agents, 1)
-    check_integer(f"{prefix}.steps", c.steps, 2)
-    check_integer(f"{prefix}.stride", c.stride, 1)
-    check_positive(f"{prefix}.dt", c.dt)
-    check_choice(f"{prefix}.split", c.split, SPLIT_MODES)
-    check_positive(f"{prefix}.test_fraction", c.test_fraction)
-    if not c.test_fraction < 1.0:
-        raise ConfigError(f"{prefix}.test_fraction={c.test_fraction!r} must lie in (0, 1)")
+    check_window(c, prefix)
 
 
 class RecordedCrowdScenario(RecordedScenario):
@@ -105,17 +98,14 @@ class RecordedCrowdScenario(RecordedScenario):
                              pools=(self.pool_size("train"), self.pool_size("test")), labelled=False, births=True)
 
     def clutter_density(self, network: SensorNetwork) -> float:
-        """The clutter's spatial density per unit area of a sensing disc: ``clutter_rate / (pi r^2)``."""
-        return self.clutter_rate / (math.pi * network.sensing_range**2)
+        """The clutter's spatial density per unit area of a sensing disc (:func:`~dslearn.sim.clutter.clutter_density`)."""
+        return clutter_density(self.clutter_rate, network)
 
     def sample(self, num: int, network: SensorNetwork, generator: torch.Generator | Streams,
                split: str | None = None) -> Episodes:
         """The first ``num`` windows of pool ``split``: their true states (``NaN`` where a pedestrian is absent) and
         each sensor's unlabelled detection sets (``meas (S, B, K+1, M, 2)``, ``visible`` the present slots)."""
-        if split is None:
-            raise ValueError("RecordedCrowdScenario.sample: a recorded scenario draws from a pool, split=train|test")
-        idx = self.chosen(split, num)
-        states = self.episodes.states[torch.as_tensor(idx, dtype=torch.long)]
+        states = self.pool_states(split, num)
         alive = self.alive(states)  # (B, K+1, A)
         ep = measure(states.nan_to_num(0.0), network, generator)
         meas, present = detections(ep.meas, ep.visible & alive.unsqueeze(0).to(ep.visible.device), network,

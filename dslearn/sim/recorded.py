@@ -85,18 +85,23 @@ def _settings(cls, values: Mapping | None, prefix: str):
     return cls() if values is None else cls(**check_keys(prefix, values, [f.name for f in dataclasses.fields(cls)]))
 
 
-def check_cut(c: EpisodeCut, prefix: str = "scenario.episodes") -> None:
-    check_integer(f"{prefix}.agents", c.agents, 2)
+def check_window(c, prefix: str = "scenario.episodes") -> None:
+    """The settings every cut of a recording has: ``steps``, ``stride``, ``dt``, ``split``, ``test_fraction``."""
     check_integer(f"{prefix}.steps", c.steps, 2)
     check_integer(f"{prefix}.stride", c.stride, 1)
-    for key in ("dt", "max_dist"):
-        check_positive(f"{prefix}.{key}", getattr(c, key))
-    check_positive(f"{prefix}.min_speed", c.min_speed, strict=False)
-    check_choice(f"{prefix}.criterion", c.criterion, CRITERIA)
+    check_positive(f"{prefix}.dt", c.dt)
     check_choice(f"{prefix}.split", c.split, SPLIT_MODES)
     check_positive(f"{prefix}.test_fraction", c.test_fraction)
     if not c.test_fraction < 1.0:
         raise ConfigError(f"{prefix}.test_fraction={c.test_fraction!r} must lie in (0, 1)")
+
+
+def check_cut(c: EpisodeCut, prefix: str = "scenario.episodes") -> None:
+    check_integer(f"{prefix}.agents", c.agents, 2)
+    check_window(c, prefix)
+    check_positive(f"{prefix}.max_dist", c.max_dist)
+    check_positive(f"{prefix}.min_speed", c.min_speed, strict=False)
+    check_choice(f"{prefix}.criterion", c.criterion, CRITERIA)
 
 
 def check_arena(a: ArenaCut, prefix: str = "scenario.network") -> None:
@@ -255,9 +260,11 @@ class RecordedScenario:
         """The first ``num`` episodes of pool ``split`` (``train`` or ``test``), measured by ``network`` with
         noise from ``generator`` (per-episode :class:`~dslearn.streams.Streams`: episode ``i``'s noise depends
         only on its own stream)."""
+        return measure(self.pool_states(split, num), network, generator)
+
+    def pool_states(self, split: str | None, num: int) -> Tensor:
+        """The true states ``(num, K+1, 4A)`` of the first ``num`` episodes of pool ``split``."""
         if split is None:
-            raise ValueError(f"RecordedScenario.sample: a recorded scenario draws from a pool, split={list(SPLITS)} "
-                             "(dslearn.sim.scenario.sample_split passes it)")
-        idx = self.chosen(split, num)
-        states = self.episodes.states[torch.as_tensor(idx, dtype=torch.long)]
-        return measure(states, network, generator)
+            raise ValueError(f"{type(self).__name__}.sample: a recorded scenario draws from a pool, "
+                             f"split={list(SPLITS)} (dslearn.sim.scenario.sample_split passes it)")
+        return self.episodes.states[torch.as_tensor(self.chosen(split, num), dtype=torch.long)]
