@@ -107,3 +107,9 @@ def record_jitter(jitter: float) -> None:
 def record_gate(tested: int, rejected: int) -> None:
     for d in active():
         d.record_gate(tested, rejected)
+
+
+def record_count(name: str, value: float = 1) -> None:
+    """Add ``value`` to the count ``name`` of every open context (a fallback taken, for example)."""
+    for d in active():
+        d.count(name, value)

@@ -381,3 +381,87 @@ def test_gnn_mahalanobis_against_stonesoup(pg):
                     np.abs(np.asarray(st.covar, float) - ours.cov[i].numpy()).max())
     print("GNN (Mahalanobis) vs Stone Soup max abs difference", worst)
     assert worst < 1e-9
+
+
+# ---- JPDA's marginals by belief propagation (Williams and Lau 2014) ---------------------------------
+
+
+def _brute_force(score, miss, gated):
+    """Every joint event of one cluster summed by hand (a reference independent of the library's enumeration)."""
+    import itertools
+    t, m = gated.shape
+    choices = [[-1] + [j for j in range(m) if gated[i, j]] for i in range(t)]
+    beta, beta0, total = np.zeros((t, m)), np.zeros(t), 0.0
+    for e in itertools.product(*choices):
+        used = [j for j in e if j >= 0]
+        if len(used) != len(set(used)):
+            continue
+        w = math.exp(sum(miss if j < 0 else score[i, j] for i, j in enumerate(e)))
+        total += w
+        for i, j in enumerate(e):
+            if j < 0:
+                beta0[i] += w
+            else:
+                beta[i, j] += w
+    return beta / total, beta0 / total
+
+
+def test_lbp_is_exact_where_the_gate_graph_is_a_tree():
+    # a chain track0 - det0 - track1 - det1 - track2 (and a lone detection of track 2): no loop, so belief
+    # propagation gives the exact marginals
+    gen = np.random.default_rng(3)
+    score = gen.normal(size=(3, 3))
+    gated = np.array([[True, False, False], [True, True, False], [False, True, True]])
+    miss = math.log(0.3)
+    ref, ref0 = _brute_force(score, miss, gated)
+    beta, beta0 = marginals(score, miss, gated, method="lbp")
+    np.testing.assert_allclose(beta, ref, atol=1e-12)
+    np.testing.assert_allclose(beta0, ref0, atol=1e-12)
+    assert not np.allclose(beta, marginals(score + 1.0, miss, gated, method="lbp")[0])  # the scores matter
+
+
+def test_lbp_close_to_exact_on_a_loopy_cluster_and_auto_switches_by_the_bound():
+    # four tracks all gating four detections (loops everywhere): an approximation, close to the exact marginals
+    gen = np.random.default_rng(5)
+    score = gen.normal(size=(4, 4))
+    gated = np.ones((4, 4), bool)
+    miss = math.log(0.25)
+    ref, ref0 = _brute_force(score, miss, gated)
+    lb, lb0 = marginals(score, miss, gated, method="lbp")
+    assert np.abs(lb - ref).max() < 0.05 and np.abs(lb0 - ref0).max() < 0.05
+    assert np.abs(lb - ref).max() > 1e-6  # not the exact answer: a real approximation
+    np.testing.assert_allclose(lb.sum(1) + lb0, 1.0, atol=1e-12)
+    ex, ex0 = marginals(score, miss, gated, method="exact")
+    np.testing.assert_allclose(ex, ref, atol=1e-13)
+    # auto: the bound 5^4 = 625 events against the limit decides
+    au, _ = marginals(score, miss, gated, limit=625, method="auto")
+    np.testing.assert_array_equal(au, ex)
+    from dslearn.diagnostics import Diagnostics
+    with Diagnostics() as d:
+        au, _ = marginals(score, miss, gated, limit=624, method="auto")
+    np.testing.assert_array_equal(au, lb)
+    assert d.counts == {"jpda_lbp_clusters": 1}
+    # exact counts the events themselves: 209 (sum over k of C(4, k)^2 k!)
+    np.testing.assert_array_equal(marginals(score, miss, gated, limit=209, method="exact")[0], ex)
+    with pytest.raises(ConfigError, match="associator.max_joint_events=208"):
+        marginals(score, miss, gated, limit=208, method="exact")
+    with pytest.raises(ConfigError, match="associator.marginals"):
+        JPDA(marginals="loopy")
+
+
+@needs_stonesoup
+@pytest.mark.parametrize("pd,lam,pg", [(0.8, 0.05, 0.99), (0.6, 0.3, 0.95)])
+def test_lbp_against_stonesoup(pd, lam, pg):
+    from stonesoup.dataassociator.probability import JPDAwithLBP
+
+    tracks, dets, means, covs, zs = _scene()
+    _, _, hyp = _ss_parts(pd, lam, pg)
+    # Stone Soup's associator fixes its tolerance at 1e-3; its own two steps are called with a tight one
+    hyps = {t: hyp.hypothesise(t, set(dets), T0) for t in tracks}
+    weights = JPDAwithLBP._calc_likelihood_matrix(tracks, dets, hyps)
+    ref = JPDAwithLBP._loopy_belief_propagation(weights, 1, 1e-12)
+    ours = JPDA(pd, lam, pg, marginals="lbp").associate(means, covs, LinearModel(H2, R2), zs)
+    worst = max(np.abs(ref[:, 0] - ours.missed.numpy()).max(), np.abs(ref[:, 1:] - ours.weights.numpy()).max())
+    assert (ref[:, 1:] > 0).tolist() == ours.gated.tolist()  # the same gate
+    print("JPDA-LBP vs Stone Soup max abs difference", worst)
+    assert worst < 1e-9

@@ -88,6 +88,7 @@ def test_scenario_validation_names_the_field(field, kwargs):
     (GNNAssociator, dict(clutter_density=-1.0), "associator.clutter_density"),
     (GNNAssociator, dict(cost="nearest"), "associator.cost"),
     (JPDAAssociator, dict(detection_probability=1.0), "associator.detection_probability"),
+    (JPDAAssociator, dict(marginals="loopy"), "associator.marginals"),
 ])
 def test_associator_validation_names_the_field(cls, kwargs, field):
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):

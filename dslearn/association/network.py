@@ -37,7 +37,7 @@ from torch import Tensor
 from dslearn.association.base import DTYPE
 from dslearn.association.gating import check_probability, gate
 from dslearn.association.gnn import GNN, assignment, log_likelihood_ratios
-from dslearn.association.jpda import JPDA, marginals
+from dslearn.association.jpda import JPDA, MARGINALS, marginals
 from dslearn.association.multitrack import NetworkTracks, TrackSettings
 from dslearn.errors import ConfigError, check_choice, check_positive
 from dslearn.types import safe_cholesky, symmetrize
@@ -97,7 +97,7 @@ class NodeAssociation:
         gated_np = gated.cpu().numpy()
         for i, k in busy.nonzero().tolist():
             if self.combines:
-                bt, b0 = marginals(score[i, k], miss, gated_np[i, k], assoc.max_joint_events)
+                bt, b0 = marginals(score[i, k], miss, gated_np[i, k], assoc.max_joint_events, assoc.marginals)
                 beta[i, k], beta0[i, k] = torch.from_numpy(bt), torch.from_numpy(b0)
             else:
                 assigned[i, k] = torch.from_numpy(assignment(pair[i, k], gated_np[i, k], miss))
@@ -199,10 +199,12 @@ class JPDAAssociator:
     detection_probability: float | None = None
     clutter_density: float | None = None
     max_joint_events: int = 100_000
+    marginals: str = "exact"
     tracks: Any = None
 
     name = "jpda"
-    config_reads = ("gate_probability", "detection_probability", "clutter_density", "max_joint_events", "tracks")
+    config_reads = ("gate_probability", "detection_probability", "clutter_density", "max_joint_events", "marginals",
+                    "tracks")
     config_unread = "JPDA does not read it"
     needs_labels = False
     #: JPDA needs P_D < 1 (a missed detection must be possible): a scenario's P_D = 1 is taken as this
@@ -213,6 +215,7 @@ class JPDAAssociator:
         if self.detection_probability is not None:
             check_probability("associator.detection_probability", self.detection_probability, closed=False)
         check_positive("associator.max_joint_events", self.max_joint_events)
+        check_choice("associator.marginals", self.marginals, MARGINALS)
         object.__setattr__(self, "tracks", TrackSettings.of(self.tracks))
 
     def node_associator(self, scenario, network) -> JPDA:
@@ -220,7 +223,7 @@ class JPDAAssociator:
         p, lam = _detection_facts(scenario, network)
         p = min(p, self.MAX_DETECTION_PROBABILITY) if self.detection_probability is None else self.detection_probability
         lam = lam if self.clutter_density is None else self.clutter_density
-        return JPDA(p, lam, self.gate_probability, int(self.max_joint_events))
+        return JPDA(p, lam, self.gate_probability, int(self.max_joint_events), self.marginals)
 
     def make(self, scenario, network, num_tracks: int) -> NodeAssociation:
         return NodeAssociation(self.node_associator(scenario, network), num_tracks)
