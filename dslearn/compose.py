@@ -117,8 +117,12 @@ def build_network(cfg: DictConfig):
     return build(cfg.network, "network")
 
 
-def build_motion_model(node: Any, scenario, network, dtype, device):
-    return build(node, "model", scenario=scenario, num_nodes=network.num_nodes, dtype=dtype, device=device)
+def build_motion_model(node: Any, scenario, network, dtype, device, fusion=None):
+    """The motion model of ``node`` for ``scenario``, its per-node state (the GPs') for every node of ``network``, or
+    for one where ``fusion`` is a fusion centre's (:attr:`~dslearn.fusion.strategies.Fusion.centre`: every node holds
+    the centre's one belief, predicted once)."""
+    nodes = 1 if fusion is not None and fusion.centre else network.num_nodes
+    return build(node, "model", scenario=scenario, num_nodes=nodes, dtype=dtype, device=device)
 
 
 def build_observation(node: Any, network, dtype, device, scenario=None):
@@ -305,20 +309,25 @@ def _method(cfg: DictConfig, s: "_Slots"):
     """The method of a matrix cell: the ``filter`` part's engine with the parts it takes, each sized for the
     cell's scenario and sensors, and the ``learner`` part (``None`` where ``learner: null``: the engine's own)."""
     scenario, net, dtype, dev = s["scenario"], s["scenario_network"], s["dtype"], s["device"]
+    params = _engine_params(cfg)
+    once = functools.lru_cache(maxsize=None)  # each built once, where taken
+    fusion = once(lambda: build_fusion(cfg.consensus, net))
+    learner = once(lambda: None if cfg.get("learner") is None else build(cfg.learner, "learner"))
+    # a fusion centre's one belief: one model state, unless the learner runs every node's filter alone
+    centre = "fusion" in params and not getattr(learner() if "learner" in params else None, "runs_nodes_alone", False)
     makers = {
-        "model": lambda: build_motion_model(cfg.model, scenario, net, dtype, dev),
+        "model": lambda: build_motion_model(cfg.model, scenario, net, dtype, dev, fusion() if centre else None),
         "model_name": lambda: str(cfg.model.name),
         "observation": lambda: build_observation(cfg.observation, net, dtype, dev, scenario),
-        "fusion": lambda: build_fusion(cfg.consensus, net),
+        "fusion": fusion,
         "fusion_name": lambda: str(cfg.consensus.name),
-        "learner": lambda: None if cfg.get("learner") is None else build(cfg.learner, "learner"),
+        "learner": learner,
         "associator": lambda: None if cfg.get("associator") is None else build(cfg.associator, "associator"),
         "network": lambda: net,
         "scenario": lambda: scenario,
         "dtype": lambda: dtype,
         "device": lambda: dev,
     }
-    params = _engine_params(cfg)
     made = build(cfg.filter, "filter", **{k: make() for k, make in makers.items() if k in params})
     return made() if isinstance(made, functools.partial) else made  # an engine that takes no run-time part
 

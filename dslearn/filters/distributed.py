@@ -287,8 +287,17 @@ def track(
     slr = getattr(predict_step, "observation_linearization", None)
     if obs.linear or obs.learnable:
         slr = None
+    # a fusion centre (every node holds the centre's belief): the prediction runs once, at node 0, and every node
+    # receives it; a motion model with per-node state is then built for one node (its num_nodes: 1)
+    s_all = y.shape[0]
+    k = 1 if one_belief(fusion, model, s_all) else s_all
+    centre = (lambda v: v[:1]) if k < s_all else (lambda v: v)  # the nodes the model predicts for and learns from
     for t in range(1, steps + 1):
-        y_pred, q_pred, o_pred, *pq = (predict_step or predict)(y, o, model, ctx, full=adapt)
+        y_pred, q_pred, o_pred, *pq = (predict_step or predict)(centre(y), centre(o), model, ctx, full=adapt)
+        if adapt:
+            pred_log.append((y_pred[:, 0], *(m[:, 0] for m in pq)))
+        if k < s_all:
+            y_pred, q_pred, o_pred = (v.expand(s_all, *v.shape[1:]).clone() for v in (y_pred, q_pred, o_pred))
         if associate is None:
             meas_t, vis_t = ep.meas[:, :, t], ep.visible[:, :, t]
             lin = slr(obs, y_pred, o_pred, ep.meas.shape[-2]) if slr is not None else None
@@ -302,21 +311,28 @@ def track(
         if learn:
             ok_prev, ok_new = _informed(infos[-1], learn_gate_std), _informed(o, learn_gate_std)
             if adapt:
-                pred_log.append((y_pred[:, 0], *(m[:, 0] for m in pq)))
                 informed &= ok_prev & ok_new & _informed(o, DIFFUSE_GUARD_STD)
             if model.learnable:
-                model.add_data(y[:, 0], y_new[:, 0], ok_prev)
+                model.add_data(centre(y)[:, 0], centre(y_new)[:, 0], centre(ok_prev))
             if obs.learnable:
                 obs.add_data(agents(y_new[:, 0]), meas_t[:, 0], vis_t[:, 0] & ok_new.unsqueeze(-1))
         y = y_new
         means.append(y)
         infos.append(o)
     if adapt:  # EM step for the process noise: smooth the episode, expected transition errors
-        m_f = torch.stack(means, 2)[:, 0]
-        P_f = torch.cholesky_inverse(safe_cholesky(torch.stack(infos, 2)[:, 0]))
+        m_f = centre(torch.stack(means, 2))[:, 0]
+        P_f = torch.cholesky_inverse(safe_cholesky(centre(torch.stack(infos, 2))[:, 0]))
         yp, Pp, Fj, Qu = (torch.stack(v, 1) for v in zip(*pred_log))
-        model.update_noise(transition_error_moments(m_f, P_f, yp, Pp, Fj), Qu, informed)
+        model.update_noise(transition_error_moments(m_f, P_f, yp, Pp, Fj), Qu, centre(informed))
     return TrackResult(torch.stack(means, 2), torch.stack(infos, 2))
+
+
+def one_belief(fusion, model, num_nodes: int) -> bool:
+    """Whether every node holds one belief that the filter predicts once: a fusion centre (:attr:`Fusion.centre`; not
+    a wrapper such as a faulty network's, whose nodes may differ) and a motion model with no per-node state or
+    state for one node (its ``num_nodes``)."""
+    return (num_nodes > 1 and isinstance(fusion, Fusion) and fusion.centre
+            and getattr(model, "num_nodes", 1) == 1)
 
 
 #: a node whose position std for some target exceeds this (m) still holds (about) the diffuse

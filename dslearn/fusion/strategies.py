@@ -64,6 +64,9 @@ class Fusion:
     #: whether it runs consensus rounds: mixes the nodes' information with ``W^L`` (its weights and ``iterations``
     #: act); ``False``: each node alone or a fusion centre (no rounds, no weights)
     mixes = True
+    #: whether every node holds one and the same belief (a fusion centre's): the filter then predicts it once
+    #: (:func:`dslearn.filters.distributed.track`) and a motion model with per-node state is built for one node
+    centre = False
 
     @classmethod
     def spec_misfit(cls, spec) -> str | None:
@@ -143,6 +146,7 @@ class Centralized(Fusion):
     config_unread = "a fusion centre: no consensus rounds"
     uses_links = False
     mixes = False
+    centre = True
 
     def __call__(self, q_pred, o_pred, dq, do, wl=None):
         return q_pred + dq.sum(0, keepdim=True), symmetrize(o_pred + do.sum(0, keepdim=True))

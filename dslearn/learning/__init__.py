@@ -18,3 +18,6 @@ class Learner:
     fits_offline: ClassVar[bool] = False
     #: it learns through the filter's update of labelled measurements (so not from an associator's detections)
     learns_through_update: ClassVar[bool] = False
+    #: it runs every node's filter alone (each node's own model state), whatever the fusion: a motion model with
+    #: per-node state is then built for every node even under a fusion centre
+    runs_nodes_alone: ClassVar[bool] = False

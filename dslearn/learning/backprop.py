@@ -827,6 +827,11 @@ class BackpropLearning(Learner):
     model_lr: Any = None
     chunk: Any = None
 
+    @property
+    def runs_nodes_alone(self) -> bool:
+        """``train_fusion=individual`` trains every node's filter alone (:attr:`Learner.runs_nodes_alone`)."""
+        return self.train_fusion == "individual"
+
     def __post_init__(self) -> None:
         if isinstance(self.epochs, bool) or not isinstance(self.epochs, int) or self.epochs < 0:
             raise ConfigError(f"learner.epochs={self.epochs!r} must be an integer >= 0")

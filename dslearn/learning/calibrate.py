@@ -459,6 +459,7 @@ class CalibrateLearning(Learner):
 
     name: ClassVar[str] = "calibrate"
     learns_through_update = True
+    runs_nodes_alone = True  # the scales' likelihood: each node's filter alone (individual_nll)
 
     fit: Any = field(default_factory=lambda: list(PARTS))
     points: int = 9
