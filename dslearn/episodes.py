@@ -102,6 +102,10 @@ class ScenarioSpec:
             ``j``); ``False``: each sensor reports a set of unlabelled detections per step (padded: ``meas (S, B, K+1,
             M, ...)``, ``visible`` the present slots), missed detections and clutter among them, and a method needs
             an associator (``associator=``) to tell which detection is which target's.
+        match_distance: the distance (in ``units``) beyond which a track is not a target's, where the tracks are
+            unlabelled: the cut-off ``c`` of GOSPA and OSPA, the identity metrics' match distance and a missed
+            target's cost in the matched-track order (:mod:`dslearn.metrics.multitarget`); a fact of the world's
+            scale (2 m for pedestrians).
     """
 
     name: str
@@ -117,6 +121,7 @@ class ScenarioSpec:
     dynamics: str | None = None
     kind: str = TARGETS
     labelled: bool = True
+    match_distance: float = 2.0
 
     @property
     def tracks_targets(self) -> bool:

@@ -370,6 +370,7 @@ def _check_scenario(option, cfg, world):
         assert (spec.name, spec.measurement, spec.num_agents, spec.labelled, sc.dt, sc.steps) == \
             ("yu_crowd_clutter", "position", 4, False, 0.25, 12)
         assert (sc.p_detect, sc.clutter_rate, sc.start_velocity_std, sc.network) == (0.9, 1.0, 1.0, None)
+        assert spec.match_distance == 2.0
         assert not sc.births and not getattr(spec, "births", False)
         return
     if option == "yu_crowd_births":  # the crowd with targets that enter and leave: 6 s (24 steps), declared births
@@ -379,6 +380,7 @@ def _check_scenario(option, cfg, world):
             ("yu_crowd_births", "position", 4, False, True, 0.25, 24)
         assert (sc.p_detect, sc.clutter_rate, sc.start_velocity_std, sc.birth_until, sc.death_from, sc.network) == \
             (0.9, 1.0, 1.0, 0.4, 0.6, None)
+        assert spec.match_distance == 2.0
         return
     if option.startswith("liu_"):  # Liu et al.'s S1-S3 as a matrix scenario: one target, 200 sensors, its own field
         cfg = _compose("task=matrix", "method=dgpt_gpoe", f"scenario={option}")
@@ -403,7 +405,7 @@ def _check_scenario(option, cfg, world):
         assert (spec.name, spec.measurement, spec.num_agents, spec.state, spec.dt, spec.steps, spec.source,
                 spec.labelled, spec.births) == (option, "position", cap, "pv2d", 0.4, 15, "recorded", False, True)
         assert (net.num_nodes, int(net.is_sensor.sum()), net.sensing_range, net.meas_std) == (4, 4, 8.0, 0.2)
-        assert (sc.p_detect, sc.clutter_rate, sc.start_velocity_std) == (0.9, 0.5, 1.0)
+        assert (sc.p_detect, sc.clutter_rate, sc.start_velocity_std, spec.match_distance) == (0.9, 0.5, 1.0, 2.0)
         # windows of 16 states every 8 steps, at most `cap` pedestrians, the last 20 % of each recording the test pool
         pools = {"eth_zara1_crowd": (83, 20), "eth_zara2_crowd": (57, 14), "eth_eth_crowd": (142, 23),
                  "eth_hotel_crowd": (120, 22), "eth_univ_crowd": (72, 20)}[option]

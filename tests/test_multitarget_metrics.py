@@ -254,3 +254,17 @@ def test_ospa_against_stonesoup():
         ours = ospa(torch.from_numpy(x).reshape(n, 2), torch.from_numpy(y).reshape(m, 2), c=2.0, p=1)
         worst = max(worst, abs(float(ref.value) - ours["ospa"].item()))
     assert worst < 1e-9
+
+
+def test_matched_order_charges_the_match_distance_where_the_track_is_absent():
+    # one target at the origin over steps 1..2; track 0 0.1 m from it but absent at step 2, track 1 1 m from it:
+    # track 0 costs 0.01 + c^2, track 1 costs 1 + 1 (by hand), so the scenario's match distance c decides
+    from dslearn.metrics.multitarget import matched_order
+
+    nan = float("nan")
+    truth = torch.zeros(1, 3, 1, 2, dtype=torch.float64)
+    est = torch.tensor([[[[0.1, 0.0], [1.0, 0.0]], [[0.1, 0.0], [1.0, 0.0]], [[nan, nan], [1.0, 0.0]]]],
+                       dtype=torch.float64).unsqueeze(0)  # (N=1, B=1, K+1=3, M=2, 2)
+    assert matched_order(est, truth, c=1.0).tolist() == [[[0]]]
+    assert matched_order(est, truth, c=2.0).tolist() == [[[1]]]
+    assert matched_order(est, truth).tolist() == [[[1]]]  # the default: 2 m

@@ -222,8 +222,9 @@ def identity_metrics(truth: Tensor, est: Tensor, threshold: float, *, truth_mask
     return {k: t[..., i] for i, k in enumerate(keys)}
 
 
-#: the cut-off ``c`` (m) of GOSPA and OSPA and the match distance of the identity metrics in the matrix's rows of
-#: multi-target tracking (:func:`tracking_metrics`): a track further than this from a target is not its
+#: the default cut-off ``c`` (m) of GOSPA and OSPA and the match distance of the identity metrics
+#: (:func:`tracking_metrics`): a track further than this from a target is not its; the matrix takes the scenario's
+#: (``ScenarioSpec.match_distance``)
 MATRIX_CUTOFF = 2.0
 #: the order ``p`` of GOSPA and OSPA in the matrix's rows
 MATRIX_ORDER = 2.0
@@ -235,19 +236,19 @@ def present(points: Tensor) -> Tensor:
     return ~torch.as_tensor(points).isnan().any(-1)
 
 
-def matched_order(est: Tensor, truth: Tensor) -> Tensor:
+def matched_order(est: Tensor, truth: Tensor, c: float = MATRIX_CUTOFF) -> Tensor:
     """The track matched to each target over a whole episode, ``(*N, B, A)`` int64: per reporting node and
     episode, the optimal assignment (SciPy's) of tracks to targets minimising the summed squared distances over the
     steps ``1..K``. ``est (*N, B, K+1, M, 2)`` (``M >= A``), ``truth (B, K+1, A, 2)``; with absent targets or tracks
-    (``NaN``, :func:`present`) a step adds the squared distance where both are present, :data:`MATRIX_CUTOFF` squared
-    where the target is and the track is not, nothing where the target is absent."""
+    (``NaN``, :func:`present`) a step adds the squared distance where both are present, ``c`` squared (the
+    scenario's match distance) where the target is and the track is not, nothing where the target is absent."""
     e = est.detach().to("cpu", torch.float64)
     x = truth.detach().to("cpu", torch.float64)
     sq = ((x[:, 1:, :, None] - e[..., 1:, None, :, :]) ** 2).sum(-1)  # (*N, B, K, A, M)
     if bool(sq.isnan().any()):  # absent targets or tracks (NaN): a present target without the track costs c^2
         tp = present(x[:, 1:])[:, :, :, None]  # (B, K, A, 1)
         ep = present(e[..., 1:, :, :])[..., None, :]  # (*N, B, K, 1, M)
-        sq = torch.where(tp & ep, sq.nan_to_num(0.0), torch.where(tp, MATRIX_CUTOFF**2, 0.0))
+        sq = torch.where(tp & ep, sq.nan_to_num(0.0), torch.where(tp, float(c) ** 2, 0.0))
     cost = sq.sum(-3)  # (*N, B, A, M)
     flat = cost.reshape(-1, *cost.shape[-2:]).numpy()
     out = np.zeros((flat.shape[0], cost.shape[-2]), dtype=np.int64)
@@ -282,7 +283,8 @@ def tracking_metrics(est: Tensor, truth: Tensor, c: float = MATRIX_CUTOFF, p: fl
     return out
 
 
-def matched_position_metrics(mean: Tensor, cov: Tensor | None, truth: Tensor) -> dict[str, Tensor]:
+def matched_position_metrics(mean: Tensor, cov: Tensor | None, truth: Tensor, c: float = MATRIX_CUTOFF
+                             ) -> dict[str, Tensor]:
     r"""``rmse``, ``pos_err`` and (with ``cov``) ``nees_pos`` of the track matched to each target over the episode
     (:func:`matched_order`), per reporting node and episode ``{name: (N, B)}``, over the steps ``1..K`` and the
     (step, target) pairs where both the target and its matched track are present (a ``NaN`` position is absent,
@@ -290,7 +292,7 @@ def matched_position_metrics(mean: Tensor, cov: Tensor | None, truth: Tensor) ->
     of varying cardinality (births and deaths); ``nees_pos`` is the mean over those steps of
     :math:`\sum_a e^T P^{-1} e / (2 n_t)`, ``n_t`` the pairs present at the step. ``NaN`` where a node never holds a
     matched track. ``mean (N, B, K+1, M, 2)``, ``cov (N, B, K+1, M, 2, 2)`` or None, ``truth (B, K+1, A, 2)``."""
-    idx = matched_order(mean, truth)  # (N, B, A)
+    idx = matched_order(mean, truth, c)  # (N, B, A)
     steps = mean.shape[2]
     gi = idx[:, :, None, :, None].expand(-1, -1, steps, -1, 2).to(mean.device)
     m = mean.gather(-2, gi)[:, :, 1:].to(torch.float64)  # (N, B, K, A, 2)

@@ -145,9 +145,11 @@ class ClutterScenario(SocialForceScenario):
 
     def __init__(self, *args, p_detect: float = 0.9, clutter_rate: float = 1.0, start_velocity_std: float = 1.0,
                  name: str = "yu_crowd_clutter", births: bool = False, birth_until: float = 0.4,
-                 death_from: float = 0.6, **kwargs):
+                 death_from: float = 0.6, match_distance: float = 2.0, **kwargs):
         super().__init__(*args, **kwargs)
         self.p_detect, self.clutter_rate = check_detection(p_detect, clutter_rate)
+        check_positive("scenario.match_distance", match_distance)
+        self.match_distance = float(match_distance)
         self.births, self.birth_until, self.death_from = check_births(births, birth_until, death_from)
         check_positive("scenario.start_velocity_std", start_velocity_std)
         self.start_velocity_std = float(start_velocity_std)
@@ -159,9 +161,10 @@ class ClutterScenario(SocialForceScenario):
         :class:`DetectionSpec` that declares them."""
         if self.births:
             return DetectionSpec(self.name, "position", self.num_agents, "pv2d", self.dt, self.steps,
-                                 dynamics="social_force", labelled=False, births=True)
+                                 dynamics="social_force", labelled=False, match_distance=self.match_distance,
+                                 births=True)
         return ScenarioSpec(self.name, "position", self.num_agents, "pv2d", self.dt, self.steps,
-                            dynamics="social_force", labelled=False)
+                            dynamics="social_force", labelled=False, match_distance=self.match_distance)
 
     def start_prior(self) -> tuple[Tensor, Tensor]:
         """Where the targets start, as declared: ``mean (A, 4)`` (start squares' centres, desired velocities) and

@@ -61,12 +61,16 @@ class RecordedCrowdScenario(RecordedScenario):
         p_detect: :math:`P_D \in (0, 1]`, per sensor, step and pedestrian in range.
         clutter_rate: false detections per sensor and step (>= 0), uniform over its sensing disc.
         start_velocity_std: a new track's velocity standard deviation (m/s; single-point initiation).
+        match_distance: m (> 0), beyond which a track is not a pedestrian's (GOSPA's cut-off, ``ScenarioSpec``).
     """
 
     def __init__(self, dataset: Mapping, name: str = "crowd", data_root: str | None = None,
                  convention: str = "physical", episodes: Mapping | None = None, network: Mapping | None = None,
-                 seed: int = 0, p_detect: float = 0.9, clutter_rate: float = 0.5, start_velocity_std: float = 1.0):
+                 seed: int = 0, p_detect: float = 0.9, clutter_rate: float = 0.5, start_velocity_std: float = 1.0,
+                 match_distance: float = 2.0):
         self.p_detect, self.clutter_rate = check_detection(p_detect, clutter_rate)
+        check_positive("scenario.match_distance", match_distance)
+        self.match_distance = float(match_distance)
         check_positive("scenario.start_velocity_std", start_velocity_std)
         self.start_velocity_std = float(start_velocity_std)
         super().__init__(dataset, name, data_root, convention, episodes, network, seed)
@@ -95,7 +99,8 @@ class RecordedCrowdScenario(RecordedScenario):
     def spec(self) -> ScenarioSpec:
         """At most ``max_agents`` recorded pedestrians entering and leaving, unlabelled detections of them."""
         return DetectionSpec(self.name, "position", self.num_agents, "pv2d", self.dt, self.steps, source="recorded",
-                             pools=(self.pool_size("train"), self.pool_size("test")), labelled=False, births=True)
+                             pools=(self.pool_size("train"), self.pool_size("test")), labelled=False,
+                             match_distance=self.match_distance, births=True)
 
     def clutter_density(self, network: SensorNetwork) -> float:
         """The clutter's spatial density per unit area of a sensing disc (:func:`~dslearn.sim.clutter.clutter_density`)."""

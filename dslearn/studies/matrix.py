@@ -38,7 +38,7 @@ import torch
 from dslearn.episodes import Scenario
 from dslearn.errors import ConfigError
 from dslearn.methods.base import Method
-from dslearn.metrics.multitarget import matched_order, matched_position_metrics, tracking_metrics
+from dslearn.metrics.multitarget import MATRIX_CUTOFF, matched_order, matched_position_metrics, tracking_metrics
 from dslearn.metrics.positions import position_metrics
 from dslearn.metrics.rows import node_rows
 from dslearn.network import SensorNetwork
@@ -148,11 +148,11 @@ class MatrixCell:
         if getattr(spec, "labelled", True):
             metrics = position_metrics(est, truth)
         elif bool(torch.isfinite(truth).all()):  # unlabelled detections: the track matched to each target, and
-            metrics = position_metrics(matched_estimates(est, truth), truth)  # the multi-target metrics
-            metrics.update(tracking_metrics(est.mean, truth))
+            metrics = position_metrics(matched_estimates(est, truth, spec.match_distance), truth)  # multi-target
+            metrics.update(tracking_metrics(est.mean, truth, spec.match_distance))
         else:  # targets that enter and leave (a NaN position: absent): over the steps where target and track exist
-            metrics = matched_position_metrics(est.mean, est.cov, truth)
-            metrics.update(tracking_metrics(est.mean, truth))
+            metrics = matched_position_metrics(est.mean, est.cov, truth, spec.match_distance)
+            metrics.update(tracking_metrics(est.mean, truth, spec.match_distance))
         kinds = ["sensor" if bool(s) else "comm" for s in est.sensing]
         keys = dict(seed=int(seed), method=method.label, scenario=spec.name, units=spec.units,
                     train_episodes=st.train_episodes, test_episodes=st.test_episodes)
@@ -162,13 +162,13 @@ class MatrixCell:
         return pd.concat([df, timing], ignore_index=True), wall
 
 
-def matched_estimates(est, truth):
+def matched_estimates(est, truth, c: float = MATRIX_CUTOFF):
     """The estimates with every node's tracks reordered so that slot ``a`` holds the track matched to target ``a``
     over the episode (:func:`~dslearn.metrics.multitarget.matched_order`): what ``rmse``, ``pos_err`` and
     ``nees_pos`` compare on a scenario of unlabelled detections."""
     from dslearn.episodes import Estimates
 
-    idx = matched_order(est.mean, truth)  # (N, B, A)
+    idx = matched_order(est.mean, truth, c)  # (N, B, A)
     steps = est.mean.shape[2]
     gi = idx[:, :, None, :, None].expand(-1, -1, steps, -1, 2)
     mean = est.mean.gather(-2, gi)
