@@ -97,8 +97,9 @@ def test_every_n_a_cell_of_the_matrix_says_why_from_the_spec():
         associates = assoc in ("GNNAssociator", "JPDAAssociator")
         if associates or not spec.labelled:  # unlabelled detections: the distributed filter with an associator only
             fits = associates and not spec.labelled and engine.endswith("DistributedFilter") and \
-                spec.measurement == "position" and (not getattr(spec, "births", False) or model == "lin")
-            # targets that enter and leave: managed tracks, along which nothing learns (LIN with learner=none)
+                spec.measurement == "position" and (not getattr(spec, "births", False) or model in ("lin", "lstm"))
+            # targets that enter and leave: managed tracks, along which nothing learns, each predicted alone (LIN
+            # with learner=none, the LSTM fitted offline to the training tracks; not the online GP)
         elif engine.endswith("DGPTMethod"):
             fits = spec.measurement == "position"
         elif engine.endswith("FactorGraphMethod"):

@@ -253,21 +253,23 @@ class DistributedFilter:
 
     def _managed_misfit(self, spec: ScenarioSpec) -> str | None:
         """Managed tracks (targets that enter and leave, :mod:`dslearn.association.multitrack`) are tracked with the
-        motion model as it is: nothing learns along them (learner=none with a model that learns nothing)."""
+        motion model as it is: nothing learns along them (learner=none, or learner=offline: a model fitted to the
+        training episodes' true tracks before any tracking), and each track is predicted alone (a model of
+        independent targets, :attr:`~dslearn.models.base.MotionModel.independent_targets`)."""
         tracks = getattr(self.associator, "tracks", None)
         if tracks is None or not tracks.manages(spec):
             return None
-        from dslearn.models.constant_velocity import ConstantVelocity, DampedConstantVelocity
-
         why = "of targets that enter and leave" if getattr(spec, "births", False) else "(associator.tracks.manage=on)"
-        if not isinstance(self.learner, NoLearning) or self.model.learnable or self.model.learns_offline:
+        if not (isinstance(self.learner, NoLearning) or self.learner.fits_offline) or self.model.learnable \
+                or self.observation.learnable:
             return (f"scenario {spec.name} reports unlabelled detections {why}: associator={self.associator.name} "
-                    f"manages the tracks, and nothing learns along managed tracks; it takes learner=none with a motion "
-                    f"model that learns nothing (here model={self.model_name}, learner={self.learner.name})")
-        if not isinstance(self.model, (ConstantVelocity, DampedConstantVelocity)):
+                    f"manages the tracks, and nothing learns along managed tracks; it takes learner=none, or "
+                    f"learner=offline with a model fitted to the training tracks (here model={self.model_name}, "
+                    f"learner={self.learner.name})")
+        if not self.model.independent_targets:
             return (f"scenario {spec.name} reports unlabelled detections {why}: associator={self.associator.name} "
                     f"manages the tracks and predicts each track alone; it takes a motion model of independent "
-                    f"targets (model=lin|cv_damped), not model={self.model_name}")
+                    f"targets (model=lin|cv_damped|lstm), not model={self.model_name}")
         return None
 
     def _init(self, scenario: Scenario, network: SensorNetwork, ctx, fusion: Fusion, obs: ObservationModel):
@@ -321,6 +323,8 @@ class DistributedFilter:
             why = self._managed_misfit(scenario.spec)
             if why is not None:
                 raise ConfigError(why)
+            if self.learner.fits_offline:  # the model fitted to the training episodes' true tracks, then frozen
+                fit_offline_cached(model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
             pos, cov = managed.run(test.meas, test.visible, network.adjacency, model, obs, fusion, ctx)
             return Estimates(pos, cov, list(network.names), network.is_sensor.clone())
         hook = self.associator.make(scenario, network, a)

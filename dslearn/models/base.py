@@ -77,6 +77,10 @@ class MotionModel(nn.Module, abc.ABC):
         """Fit hyperparameters to the current data (marginal likelihood). No-op by default."""
         return self
 
+    #: whether the agents move independently of each other (the transition's Jacobian and noise block-diagonal per
+    #: agent): a managed track (:mod:`dslearn.association.multitrack`) can then be predicted alone, as one block
+    independent_targets: bool = False
+
     # offline models -------------------------------------------------------------------
     #: whether :meth:`fit_offline` learns (a model is learned online, :attr:`learnable` /
     #: :meth:`add_data`, or offline, :meth:`fit_offline`, before the study tracks anything)

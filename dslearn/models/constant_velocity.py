@@ -14,6 +14,8 @@ class _LinearAgents(MotionModel):
     """What the constant-velocity models share: ``A`` independent agents, the state-independent transition matrix
     ``F`` of :meth:`matrix` and process noise ``Q`` of :meth:`noise_matrix` (here ``noise_std^2 I``)."""
 
+    independent_targets = True
+
     def __init__(self, num_agents: int, noise_std: float = 0.1):
         super().__init__()
         if num_agents < 1:

@@ -145,6 +145,12 @@ class SocialLSTM(MotionModel):
 
     # the model option -------------------------------------------------------------------
     learns_offline = True
+
+    @property
+    def independent_targets(self) -> bool:
+        """Without social pooling (``pooling="none"``) each agent's prediction is its own history's alone."""
+        return self.pooling == "none"
+
     #: a gradient learner fine-tunes every weight of the encoder-decoder (after its offline fit)
     gradient_parameters = "lstm"
 
@@ -434,6 +440,8 @@ class SocialLSTM(MotionModel):
     def _decode(self, history: Tensor, steps: int) -> Tensor:
         """Core: ``(B, T_obs, A, 2)`` finite positions + mask -> ``(B, steps, A, 2)`` positions."""
         b, t_obs, a, _ = history.shape
+        if a == 0:  # no agent (a batch of windows where every agent is absent somewhere, compacted away)
+            return history.new_zeros(b, steps, 0, 2)
         mask = torch.isfinite(history).all(-1).all(1)  # (B, A)
         hist = torch.where(mask[:, None, :, None], history, torch.zeros_like(history))
         disp = torch.cat([torch.zeros_like(hist[:, :1]), hist[:, 1:] - hist[:, :-1]], dim=1)
