@@ -89,6 +89,7 @@ def test_scenario_validation_names_the_field(field, kwargs):
     (GNNAssociator, dict(cost="nearest"), "associator.cost"),
     (JPDAAssociator, dict(detection_probability=1.0), "associator.detection_probability"),
     (JPDAAssociator, dict(marginals="loopy"), "associator.marginals"),
+    (JPDAAssociator, dict(info_update="exact"), "associator.info_update"),
 ])
 def test_associator_validation_names_the_field(cls, kwargs, field):
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
@@ -202,3 +203,40 @@ def test_refusals_name_the_associator(make_cfg, tmp_path):
     err = precheck(["task=matrix", "method=ekf_lin_hybrid_gnn", "scenario=yu_crowd_clutter", "scenario.clutter_rate=-1",
                     f"hydra.run.dir={tmp_path / 'run'}"])
     assert err is not None and "scenario.clutter_rate" in err
+
+
+def test_jpda_pda_information_update_is_the_pda_update_at_one_node():
+    """info_update=pda: one node's information update with the pseudo-measurement equals the moment-form PDA update of
+    :class:`JPDA` (spread of the innovations included; that one is checked against Stone Soup), for two tracks
+    sharing detections (block-diagonal prior); the default (Sandell and Olfati-Saber) is another update (its gain is
+    that of R / (1 - beta0))."""
+    from dslearn.association.jpda import JPDA
+    from dslearn.filters.information import novel_information
+
+    gen = torch.Generator().manual_seed(0)
+    means = torch.tensor([[0.0, 0.0, 1.0, 0.5], [0.8, 0.3, -0.5, 0.2]], dtype=F64)
+    covs = []
+    for _ in range(2):
+        a = torch.randn(4, 4, generator=gen, dtype=F64) * 0.4
+        covs.append(a @ a.T + 0.1 * torch.eye(4, dtype=F64))
+    covs = torch.stack(covs)
+    det = torch.tensor([[0.1, -0.1], [0.6, 0.4], [0.3, 0.1], [5.0, 5.0]], dtype=F64)
+    obs = LinearPositionObservation(0.3)
+    jp = JPDA(detection_probability=0.8, clutter_density=0.05, gate_probability=0.99)
+    ref = jp.associate(means, covs, obs, det)
+    y = means.reshape(1, 1, 8)
+    omega = torch.block_diag(*torch.linalg.inv(covs)).reshape(1, 1, 8, 8)
+    present = torch.ones(1, 1, 4, dtype=torch.bool)
+    out = {}
+    for mode in ("pda", "sandell"):
+        hook = NodeAssociation(jp, 2, info_update=mode)
+        meas, vis, lin = hook(y, omega, det.reshape(1, 1, 4, 2), present, obs)
+        dq, do = novel_information(y, meas, vis, obs, omega_pred=omega, linearized=lin)
+        o_new = omega + do
+        mean = torch.linalg.solve(o_new, (omega @ y.unsqueeze(-1)).squeeze(-1).unsqueeze(-1) + dq.unsqueeze(-1))
+        out[mode] = mean.reshape(2, 4), torch.linalg.inv(o_new[0, 0])
+    assert ref.gated[0, :3].all() and ref.gated[1, :3].all()  # a shared cluster
+    for i in range(2):
+        torch.testing.assert_close(out["pda"][0][i], ref.mean[i], rtol=0, atol=1e-10)
+        torch.testing.assert_close(out["pda"][1][4 * i:4 * i + 4, 4 * i:4 * i + 4], ref.cov[i], rtol=0, atol=1e-10)
+    assert (out["sandell"][0] - ref.mean).abs().max() > 1e-4 and (out["sandell"][1][:4, :4] - ref.cov[0]).abs().max() > 1e-4

@@ -598,7 +598,7 @@ def _check_associator(option, cfg, world):
     assert _compose().associator._target_.endswith("LabelsAssociator")  # the root default
     keys = {"labels": set(), "gnn": {"gate_probability", "detection_probability", "clutter_density", "cost", "tracks"},
             "jpda": {"gate_probability", "detection_probability", "clutter_density", "max_joint_events",
-                     "marginals", "tracks"}}[option]
+                     "marginals", "info_update", "tracks"}}[option]
     assert set(cfg.associator) - {"_target_"} == keys == set(type(obj).config_reads)
     if option != "labels":
         assert (obj.gate_probability, obj.detection_probability, obj.clutter_density) == (0.99, None, None)

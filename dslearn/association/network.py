@@ -13,8 +13,18 @@ consensus then run per track, unchanged:
 * JPDA: the information form of the PDA update (Sandell and Olfati-Saber 2008, the JPDA Kalman consensus filter):
   the track's information grows by :math:`(1 - \beta_0) C^T R^{-1} C` and its information vector by
   :math:`C^T R^{-1}((1 - \beta_0)\hat z' + \bar\nu)`, :math:`\bar\nu = \sum_j \beta_j \nu_j`, i.e. the
-  measurement :math:`\hat z + \bar\nu / (1 - \beta_0)` with covariance :math:`R / (1 - \beta_0)`. The mean of one
-  node's update is the PDA mean; the spread of the innovations (the PDA covariance's last term) is left out.
+  measurement :math:`\hat z + \bar\nu / (1 - \beta_0)` with covariance :math:`R / (1 - \beta_0)`. This is an
+  approximation of the PDA update (``info_update="sandell"``, the default): its gain is that of the noise
+  :math:`R / (1 - \beta_0)`, not of :math:`R`, so even the mean differs from PDA's unless :math:`\beta_0 = 0`, and
+  the spread of the innovations (the PDA covariance's last term) is left out. With ``info_update="pda"`` the pseudo-measurement is the one whose
+  information update is the PDA update itself, spread included: with the gate's :math:`S` and
+  :math:`S_e = (1 - \beta_0) S - \tilde\Sigma`, :math:`\tilde\Sigma = \sum_j \beta_j \nu_j\nu_j^T - \bar\nu\bar\nu^T`,
+  the measurement :math:`\hat z + S S_e^{-1} \bar\nu` with covariance :math:`R' = S S_e^{-1} S - C P C^T`
+  (then :math:`P - P C^T (C P C^T + R')^{-1} C P = P - K S_e K^T`, the PDA covariance, and the mean moves by
+  :math:`K \bar\nu`). :math:`R'` may be indefinite (the spread can make the posterior wider than the prior in
+  some direction: information is then taken away). A track whose :math:`S_e` is not positive definite (a spread
+  as large as the gate) takes the default's pseudo-measurement, counted as ``jpda_pda_fallbacks`` in the run's
+  diagnostics. One node with one track: exactly the PDA update of :class:`~dslearn.association.jpda.JPDA`.
 
 The tracks are the ``A`` targets' from the start (the scenario's declared start region,
 :func:`dslearn.filters.distributed.associated_belief`): node ``s``'s track ``j`` and node ``r``'s track ``j`` are
@@ -39,6 +49,7 @@ from dslearn.association.gating import check_probability, gate
 from dslearn.association.gnn import GNN, assignment, log_likelihood_ratios
 from dslearn.association.jpda import JPDA, MARGINALS, marginals
 from dslearn.association.multitrack import NetworkTracks, TrackSettings
+from dslearn.diagnostics import record_count
 from dslearn.errors import ConfigError, check_choice, check_positive
 from dslearn.types import safe_cholesky, symmetrize
 
@@ -46,6 +57,8 @@ from dslearn.types import safe_cholesky, symmetrize
 MIN_DETECTED = 1e-12
 #: the clutter density an associator assumes where the scenario declares none (a clutter-free scenario), per m^2
 MIN_CLUTTER_DENSITY = 1e-6
+#: how a node's JPDA becomes its information update (the module's text)
+INFO_UPDATES = ("sandell", "pda")
 
 
 class NodeAssociation:
@@ -57,12 +70,14 @@ class NodeAssociation:
     episode, by the associator's own functions (:func:`~dslearn.association.gnn.assignment`,
     :func:`~dslearn.association.jpda.marginals`)."""
 
-    def __init__(self, associator, num_tracks: int):
+    def __init__(self, associator, num_tracks: int, info_update: str = "sandell"):
         if not isinstance(associator, (GNN, JPDA)):
             raise ConfigError(f"the network's associator must be GNN or JPDA, not {type(associator).__name__}")
+        check_choice("associator.info_update", info_update, INFO_UPDATES)
         self.associator = associator
         self.num_tracks = int(num_tracks)
         self.combines = isinstance(associator, JPDA)
+        self.info_update = info_update
 
     def __call__(self, y_pred: Tensor, o_pred: Tensor, det: Tensor, present: Tensor, obs, linearized=None):
         a = self.num_tracks
@@ -113,7 +128,28 @@ class NodeAssociation:
         nu_c = (beta.unsqueeze(-1) * nu).sum(-2)  # (S, B, A, Dz): the combined innovation
         wv = torch.where(vis, w, torch.ones_like(w))
         meas = torch.where(vis.unsqueeze(-1), (h.to(DTYPE) + nu_c / wv.unsqueeze(-1)).to(z.dtype), meas)
-        return meas, vis, (h, C, R / wv.to(R.dtype).unsqueeze(-1).unsqueeze(-1))
+        r_eff = R / wv.to(R.dtype).unsqueeze(-1).unsqueeze(-1)
+        if self.info_update == "pda":
+            meas, r_eff = self._pda(meas, r_eff, vis, w, beta, nu, nu_c, S, h, R)
+        return meas, vis, (h, C, r_eff)
+
+    @staticmethod
+    def _pda(meas, r_eff, vis, w, beta, nu, nu_c, S, h, R):
+        """The pseudo-measurement and covariance whose information update is the PDA update (the module's text),
+        where the track's ``S_e`` is positive definite; the default's elsewhere."""
+        spread = torch.einsum("sbam,sbami,sbamj->sbaij", beta, nu, nu) - nu_c.unsqueeze(-1) * nu_c.unsqueeze(-2)
+        s_e = symmetrize(w.unsqueeze(-1).unsqueeze(-1) * S - spread)
+        chol, info = torch.linalg.cholesky_ex(s_e)
+        ok = vis & (info == 0)
+        if bool((vis & ~ok).any()):
+            record_count("jpda_pda_fallbacks", int((vis & ~ok).sum()))
+        eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+        chol = torch.where(ok.unsqueeze(-1).unsqueeze(-1), chol, eye)
+        z_pda = h.to(DTYPE) + (S @ torch.cholesky_solve(nu_c.unsqueeze(-1), chol)).squeeze(-1)
+        r_pda = symmetrize(S @ torch.cholesky_solve(S, chol) - (S - R.to(DTYPE)))  # S S_e^-1 S - C P C^T
+        meas = torch.where(ok.unsqueeze(-1), z_pda.to(meas.dtype), meas)
+        r_eff = torch.where(ok.unsqueeze(-1).unsqueeze(-1), r_pda.to(r_eff.dtype), r_eff)
+        return meas, r_eff
 
 
 # ------------------------------------------------------------------------------------------------
@@ -200,11 +236,12 @@ class JPDAAssociator:
     clutter_density: float | None = None
     max_joint_events: int = 100_000
     marginals: str = "exact"
+    info_update: str = "sandell"
     tracks: Any = None
 
     name = "jpda"
     config_reads = ("gate_probability", "detection_probability", "clutter_density", "max_joint_events", "marginals",
-                    "tracks")
+                    "info_update", "tracks")
     config_unread = "JPDA does not read it"
     needs_labels = False
     #: JPDA needs P_D < 1 (a missed detection must be possible): a scenario's P_D = 1 is taken as this
@@ -216,6 +253,7 @@ class JPDAAssociator:
             check_probability("associator.detection_probability", self.detection_probability, closed=False)
         check_positive("associator.max_joint_events", self.max_joint_events)
         check_choice("associator.marginals", self.marginals, MARGINALS)
+        check_choice("associator.info_update", self.info_update, INFO_UPDATES)
         object.__setattr__(self, "tracks", TrackSettings.of(self.tracks))
 
     def node_associator(self, scenario, network) -> JPDA:
@@ -226,7 +264,7 @@ class JPDAAssociator:
         return JPDA(p, lam, self.gate_probability, int(self.max_joint_events), self.marginals)
 
     def make(self, scenario, network, num_tracks: int) -> NodeAssociation:
-        return NodeAssociation(self.node_associator(scenario, network), num_tracks)
+        return NodeAssociation(self.node_associator(scenario, network), num_tracks, self.info_update)
 
     def network_tracks(self, scenario, network) -> NetworkTracks | None:
         """As :meth:`GNNAssociator.network_tracks`."""
