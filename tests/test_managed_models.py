@@ -42,6 +42,12 @@ def test_lstm_tracks_alone_equal_the_joint_prediction():
     ref = torch.stack([blocks[i, :, i] @ cov[i] @ blocks[i, :, i].T for i in range(3)]) \
         + Q[0].unflatten(0, (3, 4)).unflatten(-1, (3, 4)).diagonal(dim1=0, dim2=2).permute(2, 0, 1)
     torch.testing.assert_close(pc, ref, rtol=1e-10, atol=1e-12)
+    pm3, pc3 = predict_tracks(x, cov, joint, ctx)  # the 3-agent model's one-agent view
+    torch.testing.assert_close(pm3, pm, rtol=0, atol=1e-12)
+    torch.testing.assert_close(pc3, pc, rtol=1e-10, atol=1e-12)
+    assert joint.one_agent().state_dim == 4 and joint.state_dim == 12  # a view: the joint model unchanged
+    with pytest.raises(ValueError, match="social pooling"):
+        SocialLSTM(2, embed=8, hidden=8, dt=DT, seed=0, pooling="social").one_agent()
 
 
 def test_managed_tracks_take_the_offline_lstm_not_the_online_gp():

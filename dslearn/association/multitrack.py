@@ -123,10 +123,16 @@ def predict_tracks(mean: Tensor, cov: Tensor, model, ctx) -> tuple[Tensor, Tenso
     r"""Every track ``mean (T, 4)``, ``cov (T, 4, 4)`` predicted by the motion model, linearised at its mean (the
     EKF's prediction), each track a target block of the model's joint state (``A`` blocks per call, the rest zero):
     :math:`F_{ii} P F_{ii}^T + Q_{ii}` with the track's own blocks: exact for a model of independent targets (LIN,
-    the damped constant velocity), the only ones the distributed filter manages tracks with."""
+    the damped constant velocity, the LSTM without social pooling), the only ones the distributed filter manages
+    tracks with. A model that offers ``one_agent()`` (the LSTM) predicts the tracks as a batch of one-agent states
+    instead (the same blocks, without the joint Jacobian's ``2A`` backward passes)."""
     t = mean.shape[0]
     if t == 0:
         return mean, cov
+    one_agent = getattr(model, "one_agent", None)
+    if callable(one_agent):  # the model over one agent: every track a row of the batch, its own 4 x 4 Jacobian
+        m, f, q = one_agent().linearize(mean, ctx)
+        return m.to(DTYPE), symmetrize(f.to(DTYPE) @ cov @ f.to(DTYPE).transpose(-1, -2) + q.to(DTYPE))
     a = int(model.state_dim) // AGENT_DIM
     chunks = math.ceil(t / a)
     x = torch.zeros(chunks * a, AGENT_DIM, dtype=DTYPE)

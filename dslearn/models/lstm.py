@@ -39,6 +39,7 @@ nor counted in the loss, and their predictions are NaN.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from pathlib import Path
@@ -150,6 +151,16 @@ class SocialLSTM(MotionModel):
     def independent_targets(self) -> bool:
         """Without social pooling (``pooling="none"``) each agent's prediction is its own history's alone."""
         return self.pooling == "none"
+
+    def one_agent(self) -> "SocialLSTM":
+        """The same network over one agent's state ``(*B, 4)`` (the weights and the fitted noise shared, not
+        copied): a model of independent targets predicts each track alone with it, its Jacobian ``4 x 4`` from
+        two backward passes instead of the joint model's ``2A`` (:func:`dslearn.association.multitrack.predict_tracks`)."""
+        if not self.independent_targets:
+            raise ValueError("one_agent: a model with social pooling predicts its agents together")
+        one = copy.copy(self)  # a shallow copy: the same modules and buffers
+        one.num_agents, one.state_dim = 1, AGENT_DIM
+        return one
 
     #: a gradient learner fine-tunes every weight of the encoder-decoder (after its offline fit)
     gradient_parameters = "lstm"
