@@ -72,7 +72,7 @@ def _events(options: list[np.ndarray], limit: int):
 
 #: how a cluster's marginals are computed (the module's text)
 MARGINALS = ("exact", "lbp", "auto")
-#: belief propagation stops when no message moves more than this (relative), or after LBP_MAX_ITER sweeps
+#: belief propagation stops when no message (each in (0, 1]) moves more than this, or after LBP_MAX_ITER sweeps
 LBP_TOLERANCE = 1e-13
 LBP_MAX_ITER = 10_000
 

@@ -131,8 +131,8 @@ def predict_tracks(mean: Tensor, cov: Tensor, model, ctx) -> tuple[Tensor, Tenso
         return mean, cov
     one_agent = getattr(model, "one_agent", None)
     if callable(one_agent):  # the model over one agent: every track a row of the batch, its own 4 x 4 Jacobian
-        m, f, q = one_agent().linearize(mean, ctx)
-        return m.to(DTYPE), symmetrize(f.to(DTYPE) @ cov @ f.to(DTYPE).transpose(-1, -2) + q.to(DTYPE))
+        m, f, q = (v.to(DTYPE) for v in one_agent().linearize(mean, ctx))
+        return m, symmetrize(f @ cov @ f.transpose(-1, -2) + q)
     a = int(model.state_dim) // AGENT_DIM
     chunks = math.ceil(t / a)
     x = torch.zeros(chunks * a, AGENT_DIM, dtype=DTYPE)

@@ -131,7 +131,7 @@ class DistributedFilter:
         The motion model first learns as it would alone: an offline model (the LSTM) fits offline, a GP gathers
         its data sets online (Algorithm 1, ``learner``); then its parameters learn through the filter."""
         if self.model.learns_offline:  # one fit per model, training set and seed, shared (the offline-fit cache)
-            fit_offline_cached(self.model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
+            self._fit_offline(self.model, scenario, train, ctx, seed)
         if self.model.learnable:
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
         a = self.model.state_dim // AGENT_DIM
@@ -168,7 +168,7 @@ class DistributedFilter:
         learn from the first episodes, the scales are fitted on the held-out rest, ``learner.holdout``, which they
         then learn from too); the parts with the scales."""
         if self.model.learns_offline:  # the offline fit every preset of this model shares (the fit cache)
-            fit_offline_cached(self.model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
+            self._fit_offline(self.model, scenario, train, ctx, seed)
         n = len(train)
         held = min(int(round(self.learner.holdout * n)), n - 1) if learner.learnable and n > 1 else 0
         if learner.learnable:  # from the first episodes; the held-out ones after the fit (the same parts in the end)
@@ -184,6 +184,12 @@ class DistributedFilter:
         model = self.model if cal.q_scale == 1.0 else scaled_model(self.model, cal.q_scale)
         obs = self.observation if cal.r_scale == 1.0 else ScaledSensor(self.observation, cal.r_scale)
         return model, obs
+
+    @staticmethod
+    def _fit_offline(model: MotionModel, scenario: Scenario, train: Episodes, ctx, seed: int) -> None:
+        """The offline fit of ``model`` to the training episodes' true tracks in the filter's layout
+        (:func:`filter_tracks`), made once per model, training set and seed and shared (the offline-fit cache)."""
+        fit_offline_cached(model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
 
     def _fit_motion(self, model: MotionModel, train: Episodes, ctx, seed: int) -> None:
         """A learner that sets the motion model's parameters from the training episodes' true tracks before any
@@ -301,7 +307,7 @@ class DistributedFilter:
             model, obs, fusion = self._backprop(scenario, network, train, ctx, seed, learner)
             learner = online(model, obs, fusion)
         if self.learner.fits_offline:  # supervised: learns from the training episodes' true tracks (once: the fit cache)
-            fit_offline_cached(model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
+            self._fit_offline(model, scenario, train, ctx, seed)
         self._fit_motion(model, train, ctx, seed)
         if self.learner.learns_online and learner.learnable:  # Algorithm 1 (offline: a learning observation model)
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())  # no evaluation at checkpoints
@@ -324,7 +330,7 @@ class DistributedFilter:
             if why is not None:
                 raise ConfigError(why)
             if self.learner.fits_offline:  # the model fitted to the training episodes' true tracks, then frozen
-                fit_offline_cached(model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
+                self._fit_offline(model, scenario, train, ctx, seed)
             pos, cov = managed.run(test.meas, test.visible, network.adjacency, model, obs, fusion, ctx)
             return Estimates(pos, cov, list(network.names), network.is_sensor.clone())
         hook = self.associator.make(scenario, network, a)
@@ -339,7 +345,7 @@ class DistributedFilter:
         learner = AssociatingLearner(network, model, obs, fusion, ctx, init=init, predict_step=self.predict,
                                      learn_gate_std=self.learn_gate_std, associate=hook)
         if self.learner.fits_offline:
-            fit_offline_cached(model, filter_tracks(scenario, train.states, ctx.dt), ctx.dt, seed)
+            self._fit_offline(model, scenario, train, ctx, seed)
         self._fit_motion(model, train, ctx, seed)
         if self.learner.learns_online and learner.learnable:
             learner.run(train.measurements, [len(train)], lambda k: pd.DataFrame())
