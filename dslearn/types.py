@@ -74,6 +74,38 @@ def batch_jacobian(f: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool 
     return torch.stack(rows, dim=-2)
 
 
+#: :func:`distinct_rows` compacts a batch only where at most this share of its rows are distinct (below it the
+#: batch is kept as it is, so a batch without repeats computes exactly as before)
+DISTINCT_SHARE = 0.9
+#: the multiplier of :func:`distinct_rows`' hash (odd; column ``j``'s word is multiplied by it times ``2j + 1``)
+_ROW_HASH = 0x9E3779B97F4A7C15 - (1 << 64)
+
+
+def distinct_rows(flat: Tensor) -> tuple[Tensor, Optional[Tensor]]:
+    """``(N, D) -> (rows (U, D), inverse (N,))`` with ``rows[inverse] == flat`` bit for bit, where at most
+    :data:`DISTINCT_SHARE` of the ``N`` rows are distinct; else ``(flat, None)``. A model that is one function of the
+    row (no per-row state) then evaluates each distinct row once: the nodes of a sensor network that never saw a
+    target hold the same prior, and so do every grid point's filters up to their first measurement. Rows are
+    grouped by a hash of their 64-bit words and the grouping is then checked value for value (a collision, a NaN or
+    a signed zero keeps the batch whole). Not for a row that carries a gradient (a gather would send every
+    duplicate's gradient to its representative)."""
+    n = flat.shape[0]
+    if n < 2 or flat.requires_grad or flat.dtype != torch.float64:
+        return flat, None
+    words = flat.contiguous().view(torch.int64)
+    mult = torch.arange(1, 2 * flat.shape[-1], 2, dtype=torch.int64, device=flat.device) * _ROW_HASH  # odd, wrapping
+    key = (words * mult).sum(-1)  # wraps modulo 2^64: a hash of the row's bits
+    uniq, inverse = torch.unique(key, return_inverse=True)
+    if uniq.numel() > DISTINCT_SHARE * n:
+        return flat, None
+    rep = torch.empty(uniq.numel(), dtype=torch.long, device=flat.device)
+    rep.scatter_(0, inverse, torch.arange(n, device=flat.device))  # one member of each group
+    rows = flat[rep]
+    if not bool((rows[inverse] == flat).all()):
+        return flat, None
+    return rows, inverse
+
+
 #: the jitter records of the session outside any run (``dslearn.diagnostics.SESSION``); a run's
 #: own records are in its :class:`~dslearn.diagnostics.Diagnostics`
 JITTER = SESSION.jitter

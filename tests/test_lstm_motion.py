@@ -91,6 +91,57 @@ def test_ekf_prediction_equals_kalman_with_finite_difference_jacobian(yu):
         assert J.abs().max() > 0.5  # not a trivial map
 
 
+def test_repeated_states_are_evaluated_once_with_the_same_mean_and_jacobian(yu):
+    """A batch whose rows repeat (the nodes that never saw the target hold one prior) runs the network on its
+    distinct rows only; the mean and the Jacobian of every row are those of the batch computed whole, and a
+    batch that carries a gradient is never compacted (its gradient reaches every row)."""
+    cfg, scenario, network, states = yu
+    ctx = scenario.ctx()
+    gen = torch.Generator().manual_seed(2)
+    distinct = states[:3, 4] + 0.05 * torch.randn(3, 8, generator=gen, dtype=F64)
+    idx = torch.tensor([0, 1, 0, 2, 0, 1, 2, 2, 0, 1, 0, 0])
+    x = distinct[idx].view(3, 4, 8)
+    for pooling in ("none", "social"):
+        m = _model(cfg, scenario, network, pooling=pooling)
+        calls = []
+        m.register_forward_hook(lambda mod, args, out: calls.append(args[0].reshape(-1, 8).shape[0]))
+        y, F, _ = m.linearize(x, ctx)
+        assert calls == [3]  # the three distinct states, once
+        y_whole = torch.stack([m(distinct[i:i + 1], ctx)[0] for i in idx.tolist()]).view(3, 4, 8)
+        torch.testing.assert_close(y, y_whole, rtol=1e-12, atol=1e-12)
+        F_whole = _fd_jacobian(m, x, ctx)
+        torch.testing.assert_close(F, F_whole, rtol=1e-6, atol=1e-8)
+        torch.testing.assert_close(F[0, 0], F[0, 2], rtol=0, atol=0)  # rows 0 and 2 are one state
+        torch.testing.assert_close(m(x, ctx), y, rtol=0, atol=0)
+        # with a gradient on the rows: the whole batch (a compacted one would give the repeats no gradient)
+        z = x.clone().requires_grad_(True)
+        (g,) = torch.autograd.grad(m(z, ctx)[..., 0].sum(), z)
+        torch.testing.assert_close(g[0, 2], g[0, 0])
+        assert g.abs().sum(-1).gt(0).all()
+
+
+def test_distinct_rows_groups_by_value_and_keeps_a_batch_without_repeats():
+    from dslearn.types import DISTINCT_SHARE, distinct_rows
+
+    gen = torch.Generator().manual_seed(0)
+    base = torch.randn(4, 5, generator=gen, dtype=F64)
+    flat = base[torch.tensor([3, 0, 3, 1, 1, 2, 3, 0])]
+    rows, inverse = distinct_rows(flat)
+    assert rows.shape == (4, 5) and torch.equal(rows[inverse], flat)
+    assert distinct_rows(base)[1] is None  # nothing repeats: the batch as it is
+    ten = torch.randn(10, 5, generator=gen, dtype=F64)
+    assert 10 > DISTINCT_SHARE * 11 and distinct_rows(torch.cat([ten, ten[:1]]))[1] is None  # too few repeats
+    nan = flat.clone()
+    nan[0, 0] = nan[2, 0] = float("nan")  # equal bits, unequal values: kept whole
+    assert distinct_rows(nan)[1] is None
+    zero = torch.zeros(6, 5, dtype=F64)
+    zero[::2, 0] = -0.0  # a signed zero is another bit pattern: its own group, the same value
+    r0, i0 = distinct_rows(zero)
+    assert torch.equal(r0[i0], zero)
+    assert distinct_rows(flat.clone().requires_grad_(True))[1] is None
+    assert distinct_rows(flat.float())[1] is None
+
+
 # ----------------------------------------------------------------------------- offline fit
 def test_training_reduces_the_one_step_error_on_the_training_tracks(yu):
     cfg, scenario, network, states = yu

@@ -50,7 +50,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from dslearn.errors import ConfigError, check_choice, check_integer, check_positive
-from dslearn.types import AGENT_DIM, DTYPES, POS, StepContext, agents, joint
+from dslearn.types import AGENT_DIM, DTYPES, POS, StepContext, agents, distinct_rows, joint
 from dslearn.models.base import MotionModel
 
 POOLINGS = ("none", "social")
@@ -504,12 +504,12 @@ class SocialLSTM(MotionModel):
         """One step ``(*B, 4A) -> (*B, 4A)``: first predicted position, velocity by finite difference."""
         self._check_ctx(ctx)
         self._check_state(x)
-        flat = x.reshape(-1, self.state_dim)
+        flat, inverse = distinct_rows(x.reshape(-1, self.state_dim))  # each distinct state once
         hist = self.history_from_state(flat)
         p1 = self.predict(hist, steps=1)[:, 0]
         p0 = hist[:, -1]
         out = torch.cat([p1, (p1 - p0) / self.dt], dim=-1)
-        return joint(out).reshape(x.shape)
+        return joint(out if inverse is None else out[inverse]).reshape(x.shape)
 
     def noise_cov(self, x: Tensor, ctx: StepContext) -> Tensor:
         r""":math:`Q = I_A \otimes \Sigma` with :math:`\Sigma` fitted by :meth:`fit_offline`
@@ -531,8 +531,9 @@ class SocialLSTM(MotionModel):
         ~280 / 700 ms for forward mode (the LSTM cell has no fused forward-mode kernel)."""
         self._check_ctx(ctx)
         self._check_state(x)
+        flat, inverse = distinct_rows(x.detach().reshape(-1, self.state_dim))  # each distinct state once
         with torch.enable_grad():
-            z = x.detach().requires_grad_(True)
+            z = (x.detach() if inverse is None else flat).requires_grad_(True)
             y = self(z, ctx)
             pos = agents(y)[..., POS].reshape(*y.shape[:-1], -1)  # (*B, 2A)
             n = pos.shape[-1]
@@ -541,7 +542,10 @@ class SocialLSTM(MotionModel):
         sel = torch.eye(self.state_dim, dtype=x.dtype, device=x.device).view(self.num_agents, AGENT_DIM, -1)[:, POS]
         jv = (jp - sel) / self.dt
         F = torch.cat([jp, jv], dim=-2).flatten(-3, -2)  # (*B, 4A, Dx): per agent [p, v] rows
-        return y.detach(), F, self.noise_cov(x, ctx)
+        y = y.detach()
+        if inverse is not None:  # the distinct rows' mean and Jacobian, back to every row
+            y, F = y[inverse].reshape(x.shape), F[inverse].reshape(*x.shape, self.state_dim)
+        return y, F, self.noise_cov(x, ctx)
 
     def jacobian(self, x: Tensor, ctx: StepContext) -> Tensor:
         return self.linearize(x, ctx)[1]
