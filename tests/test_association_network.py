@@ -240,3 +240,33 @@ def test_jpda_pda_information_update_is_the_pda_update_at_one_node():
         torch.testing.assert_close(out["pda"][0][i], ref.mean[i], rtol=0, atol=1e-10)
         torch.testing.assert_close(out["pda"][1][4 * i:4 * i + 4, 4 * i:4 * i + 4], ref.cov[i], rtol=0, atol=1e-10)
     assert (out["sandell"][0] - ref.mean).abs().max() > 1e-4 and (out["sandell"][1][:4, :4] - ref.cov[0]).abs().max() > 1e-4
+
+
+@pytest.mark.parametrize("kind", ["gnn", "jpda"])
+def test_one_track_per_node_closed_forms_equal_the_per_node_functions(kind):
+    """A node with one track (Liu's field) takes the closed forms, batched over nodes and episodes: the same
+    pseudo-measurements as the general path, run here with a second track far away (its own cluster, gating
+    nothing), which calls :func:`assignment` / :func:`marginals` per node; nodes with no detection, with detections
+    outside the gate and with several gated ones are all in the batch."""
+    from dslearn.association.jpda import JPDA
+
+    gen = torch.Generator().manual_seed(4)
+    s, b, m = 6, 3, 5
+    mean = torch.randn(s, b, 4, generator=gen, dtype=F64)
+    a = torch.randn(s, b, 4, 4, generator=gen, dtype=F64) * 0.3
+    cov = a @ a.transpose(-1, -2) + 0.05 * torch.eye(4, dtype=F64)
+    det = mean[..., None, :2] + 0.6 * torch.randn(s, b, m, 2, generator=gen, dtype=F64)
+    det[0, 0] += 50.0  # every detection of this node and episode outside the gate
+    present = torch.rand(s, b, m, generator=gen) < 0.7
+    present[1] = False  # a node without detections
+    obs = LinearPositionObservation(0.3)
+    assoc = {"gnn": GNN(0.8, 0.5, 0.99), "jpda": JPDA(0.8, 0.5, 0.99)}[kind]  # clutter dense enough that a miss can win
+    one = NodeAssociation(assoc, 1)(mean, torch.linalg.inv(cov), det, present, obs)
+    far = torch.cat([mean, torch.full_like(mean, 1e4)], -1)  # track 2 at 10 km: gates nothing
+    om = torch.zeros(s, b, 8, 8, dtype=F64)
+    om[..., :4, :4], om[..., 4:, 4:] = torch.linalg.inv(cov), torch.eye(4, dtype=F64)
+    two = NodeAssociation(assoc, 2)(far, om, det, present, obs)
+    torch.testing.assert_close(one[0], two[0][:, :, :1], rtol=0, atol=1e-12)
+    assert torch.equal(one[1], two[1][:, :, :1]) and not two[1][:, :, 1].any()
+    torch.testing.assert_close(one[2][2], two[2][2][:, :, :1], rtol=1e-12, atol=0)  # R (over 1 - beta0 for JPDA)
+    assert 0 < int(one[1].sum()) < s * b and not one[1][0, 0] and not one[1][1].any()

@@ -382,6 +382,18 @@ def _check_scenario(option, cfg, world):
             (0.9, 1.0, 1.0, 0.4, 0.6, None)
         assert spec.match_distance == 2.0
         return
+    if option == "liu_s1_clutter":  # Liu's S1 field as unlabelled detections: P_D 0.9, 1 false per sensor and step
+        cfg = _compose("task=matrix", "method=ekf_lin_hybrid_gnn", f"scenario={option}")
+        sc = build_scenario(cfg)
+        spec = sc.spec
+        assert (spec.name, spec.measurement, spec.num_agents, spec.state, spec.labelled, sc.dt, sc.steps) == \
+            ("liu_s1_clutter", "position", 1, "pv2d", False, 1.0, 60)
+        assert (sc.p_detect, sc.clutter_rate, sc.start_velocity_std, sc.start_draws, spec.match_distance) == \
+            (0.9, 1.0, 1.0, 256, 50.0)
+        net = sc.network  # liu_s1's own field
+        assert (net.num_nodes, int(net.is_sensor.sum()), net.sensing_range, net.meas_std) == (200, 200, 50.0, 2.0)
+        assert cfg.scenario.trajectory._target_ == "dslearn.sim.manoeuvres.generate_s1"
+        return
     if option.startswith("liu_"):  # Liu et al.'s S1-S3 as a matrix scenario: one target, 200 sensors, its own field
         cfg = _compose("task=matrix", "method=dgpt_gpoe", f"scenario={option}")
         sc = build_scenario(cfg)
@@ -631,7 +643,7 @@ EXPECTED_OPTIONS = {"data": {"paper", "small"}, "associator": set(ASSOCIATOR_CLA
                     "network": {"yu", "yu_blind"},
                     "scenario": {"s1", "s2", "s3", "yu_two_agents", "liu_s1", "liu_s2", "liu_s3", "eth_zara1", "eth_zara2",
                                  "eth_eth", "eth_hotel", "eth_univ",
-                                 "corridor", "jiang", "braga", "yu_crowd_clutter", "yu_crowd_births"}
+                                 "corridor", "jiang", "braga", "yu_crowd_clutter", "yu_crowd_births", "liu_s1_clutter"}
                     | {f"eth_{s}_crowd" for s in ("eth", "hotel", "univ", "zara1", "zara2")}}
 
 

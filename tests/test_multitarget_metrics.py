@@ -268,3 +268,27 @@ def test_matched_order_charges_the_match_distance_where_the_track_is_absent():
     assert matched_order(est, truth, c=1.0).tolist() == [[[0]]]
     assert matched_order(est, truth, c=2.0).tolist() == [[[1]]]
     assert matched_order(est, truth).tolist() == [[[1]]]  # the default: 2 m
+
+
+@pytest.mark.parametrize("p", [1.0, 2.0, 3.0])
+def test_one_target_one_track_batches_equal_the_general_path(p):
+    """Sets of one target and one track (Liu's field) are computed batched; the general path (per set, SciPy's
+    assignment: forced here by an all-True mask, or by a second track far away) gives the same numbers (bit for bit
+    at the matrix's order p = 2, to rounding elsewhere), near and beyond the cut-off alike."""
+    gen = torch.Generator().manual_seed(3)
+    x = 2 * torch.randn(6, 5, 1, 2, generator=gen, dtype=torch.float64)
+    y = x + 1.5 * torch.randn(6, 5, 1, 2, generator=gen, dtype=torch.float64)
+    whole = torch.ones(6, 5, 1, dtype=torch.bool)
+    for f in (gospa, ospa):
+        fast, ref = f(x, y, 2.0, p), f(x, y, 2.0, p, truth_mask=whole)
+        for k in ref:
+            if p == 2.0:
+                assert torch.equal(fast[k], ref[k]), k
+            torch.testing.assert_close(fast[k], ref[k], rtol=1e-15, atol=0)
+    g = gospa(x, y, 2.0, p)
+    assert bool((g["gospa_missed"] > 0).any()) and bool((g["gospa_loc"] > 0).any())  # both kinds of pair occur
+    for b in range(5):  # each column of the 6 x 5 sets as a sequence of 6 steps
+        t, e = x[:, b], y[:, b]  # (T, 1, 2)
+        fast = match_tracks(t, e, 1.5)
+        ref = match_tracks(t, torch.cat([e, torch.full_like(e, 1e6)], 1), 1.5)
+        assert torch.equal(fast, ref)

@@ -58,7 +58,7 @@ def test_every_cli_snippet_passes_the_up_front_check(command, tmp_path):
             combos, multirun, master = sweep_combinations(argv)
         methods = len(list((CONF_DIR / "method").glob("*.yaml")))
         scenarios = len(str(master.hydra.sweeper.params.scenario).split(","))
-        assert multirun and len(combos) == methods * scenarios == 55 * 19, (len(combos), methods, scenarios)
+        assert multirun and len(combos) == methods * scenarios == 55 * 20, (len(combos), methods, scenarios)
         return
     # the sweep / run folders a snippet names are the reader's; the check must not need them to exist
     argv = [a for a in argv if not a.startswith(("hydra.sweep.dir=", "hydra.run.dir="))]

@@ -109,13 +109,28 @@ class NodeAssociation:
             pair, miss = assoc.costs(d2, S)
             pair = pair.cpu().numpy()
             assigned = torch.full((s, b, a), -1, dtype=torch.int64)
-        gated_np = gated.cpu().numpy()
-        for i, k in busy.nonzero().tolist():
+        if a == 1 and not (self.combines and assoc.marginals == "lbp"):
+            # one track per node: its events are "missed" or one gated detection, so the assignment and the
+            # marginals have closed forms, batched over the nodes and episodes (equal to the per-node functions')
+            g = torch.from_numpy(gated.cpu().numpy())
             if self.combines:
-                bt, b0 = marginals(score[i, k], miss, gated_np[i, k], assoc.max_joint_events, assoc.marginals)
-                beta[i, k], beta0[i, k] = torch.from_numpy(bt), torch.from_numpy(b0)
+                logw = torch.cat([torch.full((s, b, a, 1), miss, dtype=DTYPE),
+                                  torch.where(g, torch.from_numpy(score), -math.inf)], -1)
+                w = torch.exp(logw - torch.logsumexp(logw, -1, keepdim=True))
+                beta, beta0 = w[..., 1:], w[..., 0]
             else:
-                assigned[i, k] = torch.from_numpy(assignment(pair[i, k], gated_np[i, k], miss))
+                cost = torch.where(g, torch.from_numpy(pair), math.inf)
+                best = cost.argmin(-1, keepdim=True)
+                low = cost.gather(-1, best)
+                assigned = torch.where(torch.isfinite(low) & (low < miss), best, -1).squeeze(-1)  # miss inf: any
+        else:
+            gated_np = gated.cpu().numpy()
+            for i, k in busy.nonzero().tolist():
+                if self.combines:
+                    bt, b0 = marginals(score[i, k], miss, gated_np[i, k], assoc.max_joint_events, assoc.marginals)
+                    beta[i, k], beta0[i, k] = torch.from_numpy(bt), torch.from_numpy(b0)
+                else:
+                    assigned[i, k] = torch.from_numpy(assignment(pair[i, k], gated_np[i, k], miss))
         if not self.combines:  # GNN: the assigned detection, as given
             assigned = assigned.to(z.device)
             vis = assigned >= 0

@@ -19,13 +19,19 @@ from torch import Tensor
 from dslearn.errors import ConfigError, check_positive
 
 
-def _sets(truth: Tensor, est: Tensor, c, p, truth_mask: Tensor | None, est_mask: Tensor | None):
-    """The checked cut-off ``c`` (> 0) and order ``p`` (>= 1) as floats, the batch shape and, per batch element, the
-    two sets as float64 numpy arrays ``(n, d)``, ``(m, d)``."""
+def _order(c, p) -> tuple[float, float]:
+    """The checked cut-off ``c`` (> 0) and order ``p`` (>= 1) as floats."""
     check_positive("c", c)
     check_positive("p", p)
     if float(p) < 1:
         raise ConfigError(f"p={p!r} must be >= 1 (the order of the metric)")
+    return float(c), float(p)
+
+
+def _sets(truth: Tensor, est: Tensor, c, p, truth_mask: Tensor | None, est_mask: Tensor | None):
+    """The checked cut-off ``c`` (> 0) and order ``p`` (>= 1) as floats, the batch shape and, per batch element, the
+    two sets as float64 numpy arrays ``(n, d)``, ``(m, d)``."""
+    c, p = _order(c, p)
     truth, est = torch.as_tensor(truth), torch.as_tensor(est)
     if truth.dim() < 2 or est.dim() < 2:
         raise ConfigError(f"truth {tuple(truth.shape)} and est {tuple(est.shape)} must be (*B, N, d) and (*B, M, d)")
@@ -46,6 +52,18 @@ def _sets(truth: Tensor, est: Tensor, c, p, truth_mask: Tensor | None, est_mask:
 
     tm, em = mask(truth_mask, t, "truth_mask"), mask(est_mask, e, "est_mask")
     return float(c), float(p), batch, [(t[b][tm[b]], e[b][em[b]]) for b in range(t.shape[0])]
+
+
+def _one_on_one(truth: Tensor, est: Tensor, *masks) -> np.ndarray | None:
+    """The distances ``(*B)`` of batches whose every set holds one target and one track (no mask: one target,
+    one track throughout, as on Liu's field): their optimal assignment is that pair; ``None`` otherwise."""
+    truth, est = torch.as_tensor(truth), torch.as_tensor(est)
+    if any(m is not None for m in masks) or truth.dim() < 2 or truth.shape[-2] != 1 or est.shape[-2:] != truth.shape[-2:] \
+            or est.shape[:-2] != truth.shape[:-2]:
+        return None
+    x = truth.detach().to("cpu", torch.float64).numpy()[..., 0, :]
+    y = est.detach().to("cpu", torch.float64).numpy()[..., 0, :]
+    return np.sqrt(((x - y) ** 2).sum(-1))
 
 
 def _distances(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -81,8 +99,19 @@ def gospa(truth: Tensor, est: Tensor, c: float, p: float = 2.0, *, truth_mask: T
     Returns:
         ``{"gospa", "gospa_loc", "gospa_missed", "gospa_false"}``, each ``(*B)`` float64.
     """
-    c, p, batch, sets = _sets(truth, est, c, p, truth_mask, est_mask)
-    out = np.zeros((len(sets), 4))
+    one = _one_on_one(truth, est, truth_mask, est_mask)
+    if one is not None:  # one pair per set, batched: the loop's terms
+        c, p = _order(c, p)
+        batch, d = one.shape, one.reshape(-1)
+        near, half = d < c, c**p / 2
+        out = np.zeros((d.size, 4))
+        out[:, 1] = np.where(near, d**p, 0.0)
+        out[:, 2] = out[:, 3] = np.where(near, 0.0, half)
+        out[:, 0] = out[:, 1:].sum(-1) ** (1 / p)
+        sets = []
+    else:
+        c, p, batch, sets = _sets(truth, est, c, p, truth_mask, est_mask)
+        out = np.zeros((len(sets), 4))
     for b, (x, y) in enumerate(sets):
         d = _cut_assignment(x, y, c, p)
         near = d[d < c]
@@ -106,8 +135,16 @@ def ospa(truth: Tensor, est: Tensor, c: float, p: float = 2.0, *, truth_mask: Te
 
     Args and shapes as :func:`gospa`. Returns ``{"ospa", "ospa_loc", "ospa_card"}``, each ``(*B)`` float64.
     """
-    c, p, batch, sets = _sets(truth, est, c, p, truth_mask, est_mask)
-    out = np.zeros((len(sets), 3))
+    one = _one_on_one(truth, est, truth_mask, est_mask)
+    if one is not None:  # one pair per set, batched: n = m = 1, no cardinality term
+        c, p = _order(c, p)
+        batch, loc = one.shape, np.minimum(one.reshape(-1), c) ** p / 1
+        out = np.zeros((loc.size, 3))
+        out[:, 0], out[:, 1] = (loc + 0.0) ** (1 / p), loc ** (1 / p)
+        sets = []
+    else:
+        c, p, batch, sets = _sets(truth, est, c, p, truth_mask, est_mask)
+        out = np.zeros((len(sets), 3))
     for b, (x, y) in enumerate(sets):
         n, m = max(len(x), len(y)), min(len(x), len(y))
         if n == 0:
@@ -143,6 +180,9 @@ def match_tracks(truth: Tensor, est: Tensor, threshold: float, *, truth_mask: Te
     em = np.ones(y.shape[:2], bool) if est_mask is None else torch.as_tensor(est_mask).cpu().bool().numpy()
     if tm.shape != x.shape[:2] or em.shape != y.shape[:2]:
         raise ConfigError(f"truth_mask {tm.shape} and est_mask {em.shape} must be {x.shape[:2]} and {y.shape[:2]}")
+    if n_true == 1 and y.shape[1] == 1:  # one target, one track: paired wherever both are present and near
+        d = np.sqrt(((x[:, 0] - y[:, 0]) ** 2).sum(-1))
+        return torch.from_numpy(np.where(tm[:, 0] & em[:, 0] & (d < threshold), 0, -1).astype(np.int64)[:, None])
     match = np.full((steps, n_true), -1, dtype=np.int64)
     for t in range(steps):
         d = _distances(x[t], y[t])

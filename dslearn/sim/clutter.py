@@ -1,5 +1,6 @@
-r"""Unlabelled detections: Yu's crowd of walkers seen by range-limited sensors that report, per step, a set of
-detections without target labels, some targets missed and clutter among them.
+r"""Unlabelled detections: Yu's crowd of walkers (:class:`ClutterScenario`) and Liu et al.'s manoeuvring target
+over a 200-sensor field (:class:`ClutterManoeuvreScenario`) seen by range-limited sensors that report, per step, a
+set of detections without target labels, some targets missed and clutter among them.
 
 Each sensor detects each target inside its sensing range with probability :math:`P_D` (``p_detect``), the
 detection its noisy position (as in :func:`~dslearn.sim.scenario.measure`), and adds a Poisson number of false
@@ -28,10 +29,11 @@ from torch import Tensor
 from dataclasses import dataclass
 
 from dslearn.episodes import Episodes, ScenarioSpec
-from dslearn.errors import ConfigError, _number, check_flag, check_positive
+from dslearn.errors import ConfigError, _number, check_flag, check_integer, check_positive
 from dslearn.network import SensorNetwork
+from dslearn.sim.liu import ManoeuvreScenario
 from dslearn.sim.scenario import SocialForceScenario
-from dslearn.streams import Streams, rand
+from dslearn.streams import Streams, rand, stream_seed
 
 #: the clutter count of a sensor and step is drawn from the Poisson law truncated where its upper tail is below this
 #: (the padded set's clutter slots; the truncation changes the mean count by less than ``1e-12``)
@@ -197,3 +199,61 @@ class ClutterScenario(SocialForceScenario):
         u = rand((num, self.num_agents, 2), generator, dtype=torch.float64)
         return existence_intervals(u, self.steps, self.birth_until, self.death_from)
 
+
+
+#: the key of the random stream from which :meth:`ClutterManoeuvreScenario.start_prior` draws (with the run seed)
+START_STREAM = "liu_declared_start"
+
+
+class ClutterManoeuvreScenario(ManoeuvreScenario):
+    r"""Liu et al.'s field (:class:`~dslearn.sim.liu.ManoeuvreScenario`: one manoeuvring target, the field's own
+    sensors) seen as unlabelled detections (:func:`detections`): ``p_detect`` :math:`P_D \in (0, 1]`,
+    ``clutter_rate`` (>= 0, false detections per sensor and step, uniform over its sensing disc).
+
+    Where the target starts is a fact of the world a tracker may know (:meth:`start_prior`): the law of the
+    generator's first state, estimated from ``start_draws`` trajectories of a stream of its own (not the episodes'),
+    widened by the sensors' noise on the position and ``start_velocity_std`` on the velocity. ``match_distance``
+    (m) is the GOSPA/OSPA cut-off and the identity match distance (default: one sensing range).
+    """
+
+    def __init__(self, trajectory, name: str = "liu_s1_clutter", steps: int = 60, dt: float = 1.0,
+                 num_sensors: int = 200, sensing_range: float = 50.0, area_size: float = 1000.0, meas_std: float = 2.0,
+                 comm_radius: float = 200.0, seed: int = 0, p_detect: float = 0.9, clutter_rate: float = 1.0,
+                 start_velocity_std: float = 1.0, start_draws: int = 256, match_distance: float = 50.0):
+        super().__init__(trajectory, name=name, steps=steps, dt=dt, num_sensors=num_sensors,
+                         sensing_range=sensing_range, area_size=area_size, meas_std=meas_std, comm_radius=comm_radius,
+                         seed=seed)
+        self.p_detect, self.clutter_rate = check_detection(p_detect, clutter_rate)
+        check_positive("scenario.start_velocity_std", start_velocity_std)
+        check_integer("scenario.start_draws", start_draws, 2)
+        check_positive("scenario.match_distance", match_distance)
+        self.start_velocity_std, self.start_draws = float(start_velocity_std), int(start_draws)
+        self.match_distance = float(match_distance)
+
+    @property
+    def spec(self) -> ScenarioSpec:
+        """As Liu's scenario's, with unlabelled detections (``labelled=False``)."""
+        return ScenarioSpec(self.name, "position", 1, "pv2d", self.dt, self.steps, labelled=False,
+                            match_distance=self.match_distance)
+
+    def start_prior(self) -> tuple[Tensor, Tensor]:
+        """``mean (1, 4)`` and ``cov (1, 4, 4)`` of the target's first state ``[p, v]`` (the class text)."""
+        gen = torch.Generator().manual_seed(stream_seed(self.seed, START_STREAM))
+        pos, vel = self.trajectory(self.start_draws, self.steps + 1, gen, dt=self.dt)  # centred as the episodes
+        x0 = torch.cat([pos[:, 0], vel[:, 0]], -1).to(torch.float64)  # (R, 4)
+        sig = float(self.network.meas_std)
+        widen = torch.tensor([sig**2, sig**2, self.start_velocity_std**2, self.start_velocity_std**2],
+                             dtype=torch.float64)
+        cov = torch.cov(x0.T) + torch.diag(widen)
+        return x0.mean(0, keepdim=True), (0.5 * (cov + cov.T)).unsqueeze(0)
+
+    def clutter_density(self, network: SensorNetwork) -> float:
+        """The clutter's spatial density per unit area of a sensing disc (:func:`clutter_density`)."""
+        return clutter_density(self.clutter_rate, network)
+
+    def sample(self, num: int, network: SensorNetwork, generator: torch.Generator | Streams) -> Episodes:
+        """Liu's episodes (:meth:`ManoeuvreScenario.sample`: the trajectory, then the readings), then the
+        detection draws of :func:`detections` from the same generator or streams."""
+        ep = super().sample(num, network, generator)
+        meas, present = detections(ep.meas, ep.visible, network, self.p_detect, self.clutter_rate, generator)
+        return Episodes(ep.states, meas, present)
