@@ -260,6 +260,10 @@ def test_experiment_matrix_lists_every_preset_on_every_matrix_scenario():
 
 
 def test_experiment_matrix_small_jobs_are_exactly_the_fitting_cells():
+    from dslearn.data.ethucy import data_available
+
+    if not data_available():  # matrix_small has a recorded column (eth_zara1): its cells are built up front
+        pytest.skip("the ETH/UCY data are absent")
     combos, (kept, records), (scen, presets) = _jobs("matrix_small")
     ov = [dict(x.split("=") for x in c if not x.startswith("experiment=")) for c in combos]
     # every family on every scenario without external data

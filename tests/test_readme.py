@@ -45,6 +45,10 @@ def test_every_cli_snippet_passes_the_up_front_check(command, tmp_path):
     argv = shlex.split(command)[1:]
     if argv and argv[0] in ("--help", "--version"):
         return  # handled by the app before composition (tests/test_cli.py)
+    from dslearn.data.ethucy import data_available
+
+    if "experiment=matrix_small" in argv and not data_available():  # its recorded column's cells are built up front
+        pytest.skip("the ETH/UCY data are absent")
     if argv == ["experiment=matrix"]:
         # 328 combinations: judging each on the meta device takes about 75 s, so this one command is composed as a
         # sweep and its combinations counted (every preset on every scenario; tests/test_matrix.py checks the listing,
