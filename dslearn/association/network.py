@@ -100,37 +100,35 @@ class NodeAssociation:
         d2 = (nu * torch.linalg.solve(S.unsqueeze(3), nu.unsqueeze(-1)).squeeze(-1)).sum(-1)  # (S, B, A, M)
         assoc = self.associator
         gated = gate(d2, nu.shape[-1], assoc.gate_probability, None) & present.unsqueeze(2)
-        if self.combines:
-            score = log_likelihood_ratios(d2, S, assoc.detection_probability, assoc.clutter_density).cpu().numpy()
+        gated = gated.cpu()
+        if self.combines:  # the pairs' log scores (JPDA) or costs (GNN), on the CPU where the per-node functions run
+            score = log_likelihood_ratios(d2, S, assoc.detection_probability, assoc.clutter_density).cpu()
             miss = math.log(1 - assoc.detection_probability * assoc.gate_probability)
-            beta = torch.zeros(s, b, a, m, dtype=DTYPE)
-            beta0 = torch.ones(s, b, a, dtype=DTYPE)
         else:
-            pair, miss = assoc.costs(d2, S)
-            pair = pair.cpu().numpy()
-            assigned = torch.full((s, b, a), -1, dtype=torch.int64)
+            score, miss = assoc.costs(d2, S)
+            score = score.cpu()
         if a == 1 and not (self.combines and assoc.marginals == "lbp"):
             # one track per node: its events are "missed" or one gated detection, so the assignment and the
             # marginals have closed forms, batched over the nodes and episodes (equal to the per-node functions')
-            g = torch.from_numpy(gated.cpu().numpy())
             if self.combines:
-                logw = torch.cat([torch.full((s, b, a, 1), miss, dtype=DTYPE),
-                                  torch.where(g, torch.from_numpy(score), -math.inf)], -1)
+                logw = torch.cat([torch.full((s, b, a, 1), miss, dtype=DTYPE), torch.where(gated, score, -math.inf)], -1)
                 w = torch.exp(logw - torch.logsumexp(logw, -1, keepdim=True))
                 beta, beta0 = w[..., 1:], w[..., 0]
             else:
-                cost = torch.where(g, torch.from_numpy(pair), math.inf)
+                cost = torch.where(gated, score, math.inf)
                 best = cost.argmin(-1, keepdim=True)
                 low = cost.gather(-1, best)
                 assigned = torch.where(torch.isfinite(low) & (low < miss), best, -1).squeeze(-1)  # miss inf: any
         else:
-            gated_np = gated.cpu().numpy()
+            beta, beta0 = torch.zeros(s, b, a, m, dtype=DTYPE), torch.ones(s, b, a, dtype=DTYPE)
+            assigned = torch.full((s, b, a), -1, dtype=torch.int64)
+            score_np, gated_np = score.numpy(), gated.numpy()
             for i, k in busy.nonzero().tolist():
                 if self.combines:
-                    bt, b0 = marginals(score[i, k], miss, gated_np[i, k], assoc.max_joint_events, assoc.marginals)
+                    bt, b0 = marginals(score_np[i, k], miss, gated_np[i, k], assoc.max_joint_events, assoc.marginals)
                     beta[i, k], beta0[i, k] = torch.from_numpy(bt), torch.from_numpy(b0)
                 else:
-                    assigned[i, k] = torch.from_numpy(assignment(pair[i, k], gated_np[i, k], miss))
+                    assigned[i, k] = torch.from_numpy(assignment(score_np[i, k], gated_np[i, k], miss))
         if not self.combines:  # GNN: the assigned detection, as given
             assigned = assigned.to(z.device)
             vis = assigned >= 0

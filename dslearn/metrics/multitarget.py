@@ -140,7 +140,7 @@ def ospa(truth: Tensor, est: Tensor, c: float, p: float = 2.0, *, truth_mask: Te
         c, p = _order(c, p)
         batch, loc = one.shape, np.minimum(one.reshape(-1), c) ** p / 1
         out = np.zeros((loc.size, 3))
-        out[:, 0], out[:, 1] = (loc + 0.0) ** (1 / p), loc ** (1 / p)
+        out[:, 0] = out[:, 1] = loc ** (1 / p)  # the cardinality term is 0
         sets = []
     else:
         c, p, batch, sets = _sets(truth, est, c, p, truth_mask, est_mask)
